@@ -1,0 +1,108 @@
+"""Dr.Jit / Mitsuba start-up: find a working LLVM, pick a variant, check versions.
+
+Dr.Jit's CPU backend loads a system ``libLLVM.so``; versions older than 16 abort
+on some kernels ("Cannot select ... fminimum"). The ``karellen-llvm-core`` wheel
+ships a recent LLVM: when it is installed and the user has not set
+``DRJIT_LIBLLVM_PATH`` themselves, we preload its C++ runtime and point Dr.Jit at
+it *before* ``drjit`` is imported. This module must therefore be imported before
+``mitsuba`` or ``drjit`` anywhere in the package.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+from pathlib import Path
+
+from .errors import EnvironmentProblem
+
+MIN_LLVM = (16, 0, 0)
+_RUNTIME_LIBS = ("libunwind.so.1.0", "libc++abi.so.1.0", "libc++.so.1.0")
+
+
+def _bundled_llvm() -> Path | None:
+    """Path of the pip-installed libLLVM (karellen-llvm-core), or None."""
+    for prefix in dict.fromkeys((sys.prefix, sys.base_prefix)):
+        lib = Path(prefix) / "lib"
+        for candidate in sorted(lib.glob("libLLVM.so.*"), reverse=True):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _preload_llvm() -> None:
+    if os.environ.get("DRJIT_LIBLLVM_PATH") or not sys.platform.startswith("linux"):
+        return
+    llvm = _bundled_llvm()
+    if llvm is None:
+        return
+    runtime = llvm.parent / "x86_64-unknown-linux-gnu"
+    try:
+        for name in _RUNTIME_LIBS:
+            if (runtime / name).exists():
+                ctypes.CDLL(str(runtime / name), mode=ctypes.RTLD_GLOBAL)
+    except OSError:  # pragma: no cover - broken wheel: fall back to the system LLVM
+        return
+    os.environ["DRJIT_LIBLLVM_PATH"] = str(llvm)
+
+
+_preload_llvm()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+_LLVM_ADVICE = (
+    "install a newer LLVM: 'pip install karellen-llvm-core' (x86-64 Linux), or "
+    "'apt-get install -y libllvm19', or set DRJIT_LIBLLVM_PATH to a libLLVM.so of version >= 16"
+)
+
+
+def has_cuda() -> bool:
+    """True when Dr.Jit can use a CUDA device."""
+    try:
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # pragma: no cover - depends on the driver
+        return False
+
+
+def check_llvm() -> tuple[int, int, int]:
+    """Return the LLVM version Dr.Jit loaded; raise if it is missing or too old."""
+    try:
+        has_llvm = dr.has_backend(dr.JitBackend.LLVM)
+    except Exception:  # pragma: no cover
+        has_llvm = False
+    if not has_llvm:
+        raise EnvironmentProblem(f"Dr.Jit found no usable LLVM library; {_LLVM_ADVICE}.")
+    version = tuple(int(v) for v in dr.detail.llvm_version())
+    if version < MIN_LLVM:
+        raise EnvironmentProblem(
+            f"Dr.Jit loaded LLVM {'.'.join(map(str, version))}, which aborts on some kernels "
+            f"(needs >= 16); {_LLVM_ADVICE}."
+        )
+    return version
+
+
+def choose_variant(requested: str | None = None) -> str:
+    """Set and return the Mitsuba variant: the requested one, else CUDA if present, else LLVM.
+
+    Only the ``*_ad_rgb``/``*_rgb`` JIT variants are supported: mirad solves per RGB channel.
+    """
+    if requested is None:
+        current = mi.variant()
+        if current in ("cuda_ad_rgb", "llvm_ad_rgb", "cuda_rgb", "llvm_rgb"):
+            if current.startswith("llvm"):
+                check_llvm()
+            return current
+        requested = "cuda_ad_rgb" if has_cuda() else "llvm_ad_rgb"
+    if requested not in ("cuda_ad_rgb", "llvm_ad_rgb", "cuda_rgb", "llvm_rgb"):
+        raise EnvironmentProblem(
+            f"variant {requested!r} is not supported; use 'llvm_ad_rgb' (CPU) or 'cuda_ad_rgb' (GPU)"
+        )
+    if requested not in mi.variants():
+        raise EnvironmentProblem(f"this Mitsuba build has no variant {requested!r}")
+    if requested.startswith("llvm"):
+        check_llvm()
+    if mi.variant() != requested:
+        mi.set_variant(requested)
+    return requested

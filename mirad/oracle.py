@@ -1,0 +1,39 @@
+"""Refinement oracles: decide per link whether to keep it or split one of its ends.
+
+BF oracle (Hanrahan-Salzman-Aupperle 91): refine link p <- q while
+
+    rho_p * B_q * F_hat_pq > eps,
+
+with F_hat the largest unoccluded point-to-source form factor over the link's
+receiver samples (a bounded estimate: <= 1 even for touching elements). The end
+with the larger area is split (it subtends the larger solid angle), unless it is
+already at the minimum element area.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def bf_error(ff_max: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
+    """(M,) BF link error, W/m^2: max over channels of rho_p * B_q, times F_hat."""
+    return ff_max.astype(np.float64) * np.max(rho_recv * b_src, axis=1)
+
+
+def link_uncertainty(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
+    """(M,) practical error of a link's transfer, W/m^2: rho_p * B_q * std of the sampled kernel.
+
+    The kernel's spread over the receiver measures both the representation error
+    (irradiance varies over the element but is stored as one value) and the
+    quadrature/visibility sampling error.
+    """
+    return ff_std.astype(np.float64) * np.mean(rho_recv * b_src, axis=1)
+
+
+def choose_splits(error: np.ndarray, eps: float, area_recv: np.ndarray, area_src: np.ndarray,
+                  can_split_recv: np.ndarray, can_split_src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (split source, split receiver) for the links whose error exceeds eps."""
+    want = error > eps
+    split_src = want & can_split_src & ((area_src >= area_recv) | ~can_split_recv)
+    split_recv = want & can_split_recv & ~split_src
+    return split_src, split_recv

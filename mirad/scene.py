@@ -1,0 +1,536 @@
+"""Scene ingestion: a Mitsuba scene in, triangles with reflectance and emission out.
+
+Every shape becomes world-space triangles (meshes as they are, analytic sphere,
+disk and cylinder tessellated; visibility rays still go to the true Mitsuba
+shape). Each triangle gets its diffuse albedo rho (C,) averaged over the triangle
+and its emitted radiosity E = pi * L_e (C,) from an ``area`` emitter. Two-sided
+BSDFs give a back-side *patch* per triangle; patches are the roots of the
+element hierarchy. Other emitters (point, spot, directional, environment) are
+kept for the direct-light pass (``emitters.py``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
+from ._runtime import choose_variant
+from .errors import SceneError
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+#: Relative size under which a triangle counts as degenerate (area < ZERO_AREA * diag^2).
+ZERO_AREA = 1e-12
+#: Material sample points per triangle (fixed barycentric rule) x BSDF directions per point.
+_MATERIAL_POINTS = np.array(
+    [[1 / 3, 1 / 3], [0.6, 0.2], [0.2, 0.6], [0.2, 0.2], [0.1, 0.45], [0.45, 0.1], [0.45, 0.45], [0.8, 0.1]]
+)
+_BSDF_DIRECTIONS = 8
+
+_NON_DIFFUSE_FLAGS = None  # filled lazily (needs a variant)
+
+
+@dataclass
+class Scene:
+    """A Mitsuba scene turned into triangle arrays (all float64, world space, metres).
+
+    Attributes
+    ----------
+    mi_scene : mi.Scene            the loaded scene (visibility rays go here)
+    source : str or None           file the scene came from
+    shape_ids : list[str]          Mitsuba ids, in ``mi_scene.shapes()`` order
+    shape_types : list[str]        Mitsuba class names ("Mesh", "Rectangle", "Sphere", ...)
+    vertices : (V, 3) float        triangle-mesh vertices of all shapes
+    faces : (T, 3) int             vertex indices of every input triangle
+    tri_shape : (T,) int           shape index of each triangle
+    tri_area : (T,) float          m^2
+    tri_normal : (T, 3) float      unit front normal
+    tri_rho : (T, C) float         front diffuse albedo
+    tri_emission : (T, C) float    front emitted radiosity E = pi L_e, W/m^2
+    patch_tri : (P,) int           triangle of each patch (front patches first, then back patches)
+    patch_side : (P,) int          0 front, 1 back
+    patch_rho, patch_emission : (P, C) float
+    curve_center, curve_axis : (T, 3) float; curve_radius : (T,) float
+        true-surface projection for tessellated spheres/cylinders (radius 0: flat)
+    light_emitters : list          non-area Mitsuba emitters (direct-light pass)
+    light_kinds : list[str]        their class names
+    """
+
+    mi_scene: object
+    source: str | None
+    shape_ids: list
+    shape_types: list
+    vertices: np.ndarray
+    faces: np.ndarray
+    tri_shape: np.ndarray
+    tri_area: np.ndarray
+    tri_normal: np.ndarray
+    tri_rho: np.ndarray
+    tri_emission: np.ndarray
+    back_rho: np.ndarray
+    curve_center: np.ndarray
+    curve_axis: np.ndarray
+    curve_radius: np.ndarray
+    vertex_uv: np.ndarray | None
+    light_emitters: list
+    light_kinds: list
+    variant: str
+    dropped_triangles: int = 0
+    warnings: list = field(default_factory=list)
+    non_diffuse_shapes: list = field(default_factory=list)
+
+    # --- derived ---------------------------------------------------------------------------
+    @property
+    def triangle_count(self) -> int:
+        return len(self.faces)
+
+    @property
+    def channels(self) -> int:
+        return self.tri_rho.shape[1]
+
+    @property
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.mi_scene.bbox().min, self.mi_scene.bbox().max
+        return np.array(lo, dtype=np.float64), np.array(hi, dtype=np.float64)
+
+    @property
+    def diagonal(self) -> float:
+        """Length of the scene bounding-box diagonal, m (the unit of every epsilon)."""
+        lo = self.vertices.min(axis=0)
+        hi = self.vertices.max(axis=0)
+        return float(np.linalg.norm(hi - lo)) or 1.0
+
+    @property
+    def tri_vertices(self) -> np.ndarray:
+        """(T, 3, 3) float: the corners of each triangle."""
+        return self.vertices[self.faces]
+
+    @property
+    def back_triangles(self) -> np.ndarray:
+        """(B,) int: triangles with a back-side patch (two-sided BSDF)."""
+        return np.flatnonzero(self.back_rho.max(axis=1) > 0)
+
+    @property
+    def patch_tri(self) -> np.ndarray:
+        return np.concatenate([np.arange(self.triangle_count), self.back_triangles])
+
+    @property
+    def patch_side(self) -> np.ndarray:
+        return np.concatenate(
+            [np.zeros(self.triangle_count, np.int8), np.ones(len(self.back_triangles), np.int8)]
+        )
+
+    @property
+    def patch_rho(self) -> np.ndarray:
+        return np.concatenate([self.tri_rho, self.back_rho[self.back_triangles]])
+
+    @property
+    def patch_emission(self) -> np.ndarray:
+        back = np.zeros((len(self.back_triangles), self.channels))
+        return np.concatenate([self.tri_emission, back])
+
+    @property
+    def grey(self) -> bool:
+        """True when every reflectance and emission is the same in all channels."""
+        rho, em = self.tri_rho, self.tri_emission
+        return bool(np.all(rho == rho[:, :1]) and np.all(em == em[:, :1]) and np.all(self.back_rho == self.back_rho[:, :1]))
+
+    @property
+    def features(self) -> dict:
+        """What the scene uses and what mirad switches on for it."""
+        kinds: dict[str, int] = {}
+        n_area = int(np.count_nonzero(self.tri_emission.max(axis=1) > 0))
+        if n_area:
+            kinds["area (triangles)"] = n_area
+        for k in self.light_kinds:
+            kinds[k] = kinds.get(k, 0) + 1
+        return {
+            "triangles": self.triangle_count,
+            "shapes": len(self.shape_ids),
+            "channels": 1 if self.grey else self.channels,
+            "back_side_patches": int(len(self.back_triangles)),
+            "emitters": kinds,
+            "direct_light_pass": bool(self.light_emitters),
+            "curved_shapes": int(np.count_nonzero(self.curve_radius > 0)),
+            "non_diffuse_approximated": list(self.non_diffuse_shapes),
+            "dropped_zero_area_triangles": int(self.dropped_triangles),
+        }
+
+    @property
+    def fingerprint(self) -> str:
+        """Hash of geometry, materials and lights: saved solutions and caches check it."""
+        h = hashlib.sha256()
+        for arr in (self.vertices.astype(np.float32), self.faces.astype(np.int64),
+                    np.round(self.tri_rho, 6), np.round(self.tri_emission, 6), np.round(self.back_rho, 6)):
+            h.update(np.ascontiguousarray(arr).tobytes())
+        h.update("\0".join(self.shape_ids).encode())
+        h.update("\0".join(self.light_kinds).encode())
+        return h.hexdigest()[:16]
+
+    def shape_index(self, shape_id: str) -> int:
+        try:
+            return self.shape_ids.index(shape_id)
+        except ValueError:
+            raise KeyError(f"no shape with id {shape_id!r}; ids are {self.shape_ids}") from None
+
+
+# ------------------------------------------------------------------------------------------
+# Loading
+# ------------------------------------------------------------------------------------------
+
+def load_scene(source, *, variant: str | None = None) -> Scene:
+    """Load a scene from an XML path, a Mitsuba dict or an ``mi.Scene``.
+
+    Files and dicts are loaded with ``optimize=False`` so every shape keeps its id.
+
+    >>> scene = load_scene("scenes/cornell-box/scene.xml")   # doctest: +SKIP
+    >>> scene.shape_ids[:2]                                 # doctest: +SKIP
+    ['floor', 'ceiling']
+    """
+    if isinstance(source, Scene):
+        return source
+    variant = choose_variant(variant)
+    path = None
+    if isinstance(source, (str, os.PathLike)):
+        path = str(source)
+        if not os.path.exists(path):
+            raise SceneError(f"scene file '{path}' does not exist; check the path")
+        if os.path.isdir(path):
+            raise SceneError(f"'{path}' is a folder; give the scene's XML file")
+        try:
+            mi_scene = mi.load_file(path, optimize=False)
+        except Exception as exc:  # Mitsuba raises RuntimeError with its own text
+            raise SceneError(_explain_load_error(path, exc)) from None
+    elif isinstance(source, dict):
+        try:
+            mi_scene = mi.load_dict(source, optimize=False)
+        except Exception as exc:
+            raise SceneError(_explain_load_error("<dict>", exc)) from None
+    elif isinstance(source, mi.Scene):
+        mi_scene = source
+    else:
+        raise SceneError(
+            f"cannot load a scene from {type(source).__name__}; give an XML path, a Mitsuba dict or an mi.Scene"
+        )
+    return _ingest(mi_scene, path, variant)
+
+
+def _explain_load_error(where: str, exc: Exception) -> str:
+    text = str(exc).strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    detail = lines[-1] if lines else type(exc).__name__
+    low = text.lower()
+    if "plugin" in low and ("not found" in low or "unknown" in low or "could not" in low):
+        fix = "check the plugin's 'type' name against Mitsuba's plugin list"
+    elif "xml" in low or "parse" in low or "error while parsing" in low:
+        fix = "fix the XML syntax at the position given"
+    elif "file" in low and ("not" in low or "exist" in low or "unable" in low):
+        fix = "check that every referenced file exists (paths are relative to the scene file)"
+    else:
+        fix = "fix the scene so that 'mitsuba' itself can load it"
+    return f"{where}: Mitsuba could not load the scene ({detail}); {fix}"
+
+
+def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
+    where = path or "<scene>"
+    shapes = list(mi_scene.shapes())
+    if not shapes:
+        raise SceneError(f"{where}: the scene has no shapes; add geometry to solve")
+    ids, types = [], []
+    verts_all, faces_all, shape_of = [], [], []
+    uv_all = []
+    c_center, c_axis, c_radius = [], [], []
+    offset = 0
+    has_uv = False
+    for index, shape in enumerate(shapes):
+        sid = shape.id() or f"shape_{index}"
+        ids.append(sid)
+        kind = shape.class_name()
+        types.append(kind)
+        verts, faces, uv, curve = _triangulate(shape, sid, where)
+        if not np.all(np.isfinite(verts)):
+            raise SceneError(
+                f"{where}: shape '{sid}' has NaN or Inf vertex positions; repair or re-export the mesh"
+            )
+        has_uv |= uv is not None
+        uv_all.append(uv if uv is not None else np.full((len(verts), 2), np.nan))
+        verts_all.append(verts)
+        faces_all.append(faces + offset)
+        shape_of.append(np.full(len(faces), index, np.int32))
+        center, axis, radius = curve
+        c_center.append(np.tile(center, (len(faces), 1)))
+        c_axis.append(np.tile(axis, (len(faces), 1)))
+        c_radius.append(np.full(len(faces), radius))
+        offset += len(verts)
+    vertices = np.concatenate(verts_all)
+    faces = np.concatenate(faces_all).astype(np.int64)
+    tri_shape = np.concatenate(shape_of)
+    vertex_uv = np.concatenate(uv_all) if has_uv else None
+    curve_center, curve_axis, curve_radius = map(np.concatenate, (c_center, c_axis, c_radius))
+
+    # --- geometry per triangle, drop degenerate ones --------------------------------------
+    diag = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0))) or 1.0
+    tv = vertices[faces]
+    cross = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    double_area = np.linalg.norm(cross, axis=1)
+    keep = double_area > 2 * ZERO_AREA * diag * diag
+    dropped = int(np.count_nonzero(~keep))
+    faces, tri_shape = faces[keep], tri_shape[keep]
+    curve_center, curve_axis, curve_radius = curve_center[keep], curve_axis[keep], curve_radius[keep]
+    cross, double_area = cross[keep], double_area[keep]
+    if len(faces) == 0:
+        raise SceneError(f"{where}: every triangle has zero area; the scene has no usable geometry")
+    tri_area = 0.5 * double_area
+    tri_normal = cross / double_area[:, None]
+
+    scene = Scene(
+        mi_scene=mi_scene, source=path, shape_ids=ids, shape_types=types, vertices=vertices,
+        faces=faces, tri_shape=tri_shape, tri_area=tri_area, tri_normal=tri_normal,
+        tri_rho=np.zeros((len(faces), 3)), tri_emission=np.zeros((len(faces), 3)),
+        back_rho=np.zeros((len(faces), 3)), curve_center=curve_center, curve_axis=curve_axis,
+        curve_radius=curve_radius, vertex_uv=vertex_uv, light_emitters=[], light_kinds=[],
+        variant=variant, dropped_triangles=dropped,
+    )
+    _evaluate_materials(scene, shapes, where)
+
+    for emitter in mi_scene.emitters():
+        if emitter.get_shape() is not None:
+            continue
+        scene.light_emitters.append(emitter)
+        scene.light_kinds.append(emitter.class_name())
+    if scene.tri_emission.max() <= 0 and not scene.light_emitters:
+        raise SceneError(
+            f"{where}: the scene has no light; add an area emitter to a shape or a point/spot/"
+            "directional/environment emitter"
+        )
+    unnamed = [i for i, s in enumerate(shapes) if not s.id()]
+    if unnamed and isinstance(path, str) is False and len(unnamed) == len(shapes):
+        _warn_once(scene, "the mi.Scene has no shape ids (was it loaded with optimize=True, which merges "
+                          "shapes?); load it with mirad.load_scene(path) to keep them")
+    return scene
+
+
+def _warn_once(scene: Scene, message: str) -> None:
+    if message not in scene.warnings:
+        scene.warnings.append(message)
+        warnings.warn(message, stacklevel=3)
+
+
+# ------------------------------------------------------------------------------------------
+# Shapes to triangles
+# ------------------------------------------------------------------------------------------
+
+def _to_world_matrix(shape) -> np.ndarray:
+    params = mi.traverse(shape)
+    m = np.array(params["to_world"].matrix.numpy(), dtype=np.float64)
+    return m.reshape(4, 4) if m.size == 16 else m[..., 0]
+
+
+def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def _triangulate(shape, sid: str, where: str):
+    """Return (vertices (V,3), faces (F,3), uv (V,2) or None, (center, axis, radius))."""
+    flat = (np.zeros(3), np.zeros(3), 0.0)
+    kind = shape.shape_type()
+    if shape.is_mesh():
+        verts = np.array(shape.vertex_positions_buffer().numpy(), dtype=np.float64).reshape(-1, 3)
+        faces = np.array(shape.faces_buffer().numpy(), dtype=np.int64).reshape(-1, 3)
+        uv = None
+        if shape.has_vertex_texcoords():
+            uv = np.array(shape.vertex_texcoords_buffer().numpy(), dtype=np.float64).reshape(-1, 2)
+        if shape.has_flipped_normals():
+            faces = faces[:, ::-1].copy()
+        return verts, faces, uv, flat
+    if kind == mi.ShapeType.Disk:
+        m = _to_world_matrix(shape)
+        local, faces, uv = _disk_mesh()
+        verts = _apply(m, local)
+    elif kind == mi.ShapeType.Sphere:
+        m = _to_world_matrix(shape)
+        local, faces, uv = _sphere_mesh()
+        verts = _apply(m, local)
+        center = _apply(m, np.zeros((1, 3)))[0]
+        radius = float(np.linalg.norm(m[:3, 0]))
+        flat = (center, np.zeros(3), radius)
+    elif kind == mi.ShapeType.Cylinder:
+        m = _to_world_matrix(shape)
+        local, faces, uv = _cylinder_mesh()
+        verts = _apply(m, local)
+        center = _apply(m, np.zeros((1, 3)))[0]
+        axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        radius = float(np.linalg.norm(m[:3, 0]))
+        flat = (center, axis, radius)
+    else:
+        raise SceneError(
+            f"{where}: shape '{sid}' is a {shape.class_name()}, which mirad cannot mesh; "
+            "convert it to a triangle mesh (obj/ply) or use rectangle, disk, cube, sphere or cylinder"
+        )
+    if shape.has_flipped_normals():
+        faces = faces[:, ::-1].copy()
+    return verts, faces, uv, flat
+
+
+def _disk_mesh(segments: int = 32, rings: int = 3):
+    """Unit disk in z = 0, normal +z: (V,3), (F,3), uv = (r, phi / 2 pi)."""
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    pts = [np.zeros((1, 3))]
+    uvs = [np.zeros((1, 2))]
+    for r in np.arange(1, rings + 1) / rings:
+        pts.append(np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros_like(phi)], 1))
+        uvs.append(np.stack([np.full_like(phi, r), phi / (2 * np.pi)], 1))
+    verts = np.concatenate(pts)
+    uv = np.concatenate(uvs)
+    j = np.arange(segments)
+    jn = (j + 1) % segments
+    faces = [np.stack([np.zeros(segments, int), 1 + j, 1 + jn], 1)]
+    for ring in range(1, rings):
+        a = 1 + (ring - 1) * segments
+        b = 1 + ring * segments
+        faces.append(np.stack([a + j, b + j, b + jn], 1))
+        faces.append(np.stack([a + j, b + jn, a + jn], 1))
+    return verts, np.concatenate(faces), uv
+
+
+def _sphere_mesh(n_theta: int = 12, n_phi: int = 24):
+    """Unit sphere, outward normals."""
+    theta = np.linspace(0, np.pi, n_theta + 1)
+    phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    verts = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    uv = np.stack([p / (2 * np.pi), t / np.pi], -1).reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(n_theta), np.arange(n_phi), indexing="ij")
+    jn = (j + 1) % n_phi
+    a, b, c, d = i * n_phi + j, i * n_phi + jn, (i + 1) * n_phi + j, (i + 1) * n_phi + jn
+    faces = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3), np.stack([a, d, b], -1).reshape(-1, 3)])
+    # Orientation: outward normal needs (c - a) x (d - a) to point away from the centre.
+    tv = verts[faces]
+    n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    outward = np.einsum("ij,ij->i", n, tv.mean(axis=1)) >= 0
+    faces[~outward] = faces[~outward][:, ::-1]
+    return verts, faces, uv
+
+
+def _cylinder_mesh(segments: int = 32, rows: int = 4):
+    """Open unit cylinder from z = 0 to 1, outward normals."""
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    z = np.linspace(0, 1, rows + 1)
+    zz, pp = np.meshgrid(z, phi, indexing="ij")
+    verts = np.stack([np.cos(pp), np.sin(pp), zz], -1).reshape(-1, 3)
+    uv = np.stack([pp / (2 * np.pi), zz], -1).reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(rows), np.arange(segments), indexing="ij")
+    jn = (j + 1) % segments
+    a, b, c, d = i * segments + j, i * segments + jn, (i + 1) * segments + j, (i + 1) * segments + jn
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    tv = verts[faces]
+    n = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    radial = tv.mean(axis=1) * np.array([1, 1, 0])
+    outward = np.einsum("ij,ij->i", n, radial) >= 0
+    faces[~outward] = faces[~outward][:, ::-1]
+    return verts, faces, uv
+
+
+# ------------------------------------------------------------------------------------------
+# Materials and emission, evaluated by Mitsuba at sample points of every triangle
+# ------------------------------------------------------------------------------------------
+
+def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
+    """Fill tri_rho, back_rho and tri_emission (one vectorised Mitsuba call per shape)."""
+    bad_flags = (mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta | mi.BSDFFlags.DiffuseTransmission
+                 | mi.BSDFFlags.Null)
+    for index, shape in enumerate(shapes):
+        tris = np.flatnonzero(scene.tri_shape == index)
+        if len(tris) == 0:
+            continue
+        sid = scene.shape_ids[index]
+        bsdf = shape.bsdf()
+        if bsdf is not None and (int(bsdf.flags()) & int(bad_flags)):
+            scene.non_diffuse_shapes.append(sid)
+            _warn_once(scene, f"shape '{sid}': BSDF '{bsdf.class_name()}' is not diffuse; mirad uses its "
+                              "diffuse albedo (hemispherical reflectance at normal incidence)")
+        si, n_pts = _material_interactions(scene, shape, tris)
+        if bsdf is not None:
+            front, front_max, front_min = _albedo(bsdf, si, n_pts, +1.0)
+            back, _, _ = _albedo(bsdf, si, n_pts, -1.0)
+            if front_min < -1e-6:
+                raise SceneError(f"{where}: shape '{sid}': reflectance {front_min:.3g} < 0; "
+                                 "give a reflectance between 0 and 1")
+            diffuse_only = sid not in scene.non_diffuse_shapes
+            if front_max > 1 + 1e-4 and diffuse_only:
+                raise SceneError(f"{where}: shape '{sid}': reflectance {front_max:.3g} > 1 breaks energy "
+                                 "conservation; scale the BSDF's reflectance below 1")
+            scene.tri_rho[tris] = np.clip(front, 0.0, 1.0)
+            scene.back_rho[tris] = np.clip(back, 0.0, 1.0)
+        emitter = shape.emitter()
+        if emitter is not None:
+            si.wi = mi.Vector3f(0, 0, 1)
+            radiance = _rows(emitter.eval(si), len(tris) * n_pts)
+            if not np.all(np.isfinite(radiance)):
+                raise SceneError(f"{where}: shape '{sid}': emitter radiance is NaN or Inf; give finite values")
+            if radiance.min() < 0:
+                raise SceneError(f"{where}: shape '{sid}': emitter radiance {radiance.min():.3g} < 0; "
+                                 "radiance must be non-negative")
+            scene.tri_emission[tris] = np.pi * radiance.reshape(len(tris), n_pts, 3).mean(axis=1)
+
+
+def _material_interactions(scene: Scene, shape, tris: np.ndarray):
+    """SurfaceInteraction3f at fixed barycentric points of the given triangles (tris x points)."""
+    bary = _MATERIAL_POINTS
+    n_pts = len(bary)
+    tv = scene.vertices[scene.faces[tris]]                         # (n, 3, 3)
+    w = np.stack([1 - bary.sum(1), bary[:, 0], bary[:, 1]], 1)     # (k, 3)
+    pts = np.einsum("kj,njc->nkc", w, tv).reshape(-1, 3)
+    nrm = np.repeat(scene.tri_normal[tris], n_pts, axis=0)
+    if scene.vertex_uv is not None:
+        uv = np.einsum("kj,njc->nkc", w, scene.vertex_uv[scene.faces[tris]]).reshape(-1, 2)
+        uv = np.nan_to_num(uv)
+    else:
+        uv = np.zeros((len(pts), 2))
+    count = len(pts)
+    si = dr.zeros(mi.SurfaceInteraction3f, count)
+    si.p = mi.Point3f(*[mi.Float(pts[:, i].astype(np.float32)) for i in range(3)])
+    si.n = mi.Normal3f(*[mi.Float(nrm[:, i].astype(np.float32)) for i in range(3)])
+    si.sh_frame = mi.Frame3f(si.n)
+    si.uv = mi.Point2f(mi.Float(uv[:, 0].astype(np.float32)), mi.Float(uv[:, 1].astype(np.float32)))
+    si.shape = mi.ShapePtr(shape)
+    si.prim_index = mi.UInt32(np.repeat(tris - tris.min(), n_pts).astype(np.uint32))
+    si.wi = mi.Vector3f(0, 0, 1)
+    return si, n_pts
+
+
+def _albedo(bsdf, si, n_pts: int, side: float):
+    """Mean reflected weight of BSDF samples (directional albedo), per triangle: (n, 3)."""
+    count = dr.width(si.p)
+    k = _BSDF_DIRECTIONS
+    g = int(np.sqrt(k))
+    su = (np.arange(k) % g + 0.5) / g
+    sv = (np.arange(k) // g + 0.5) / (k // g)
+    ctx = mi.BSDFContext()
+    total = np.zeros((count, 3))
+    vmax, vmin = -np.inf, np.inf
+    si.wi = mi.Vector3f(0, 0, side)
+    for j in range(k):  # a handful of fixed directions, each one vectorised over all points
+        bs, weight = bsdf.sample(ctx, si, mi.Float(0.5), mi.Point2f(float(su[j]), float(sv[j])))
+        same_side = (mi.Frame3f.cos_theta(bs.wo) * side) > 0
+        weight = dr.select(same_side, weight, 0.0)
+        arr = _rows(weight, count)
+        arr = np.nan_to_num(arr, nan=0.0, posinf=0.0, neginf=0.0)
+        total += arr
+        vmax, vmin = max(vmax, arr.max()), min(vmin, arr.min())
+    albedo = (total / k).reshape(-1, n_pts, 3).mean(axis=1)
+    return albedo, vmax, vmin
+
+
+def _rows(spectrum, count: int) -> np.ndarray:
+    """A Dr.Jit colour (possibly of width 1) as a (count, 3) float64 array."""
+    arr = np.array(spectrum.numpy(), dtype=np.float64)
+    arr = arr.T if arr.ndim == 2 and arr.shape[0] == 3 else arr.reshape(-1, 3)
+    return np.broadcast_to(arr, (count, 3)).copy() if len(arr) != count else arr

@@ -1,0 +1,117 @@
+"""All solver options in one frozen dataclass; the API, the CLI and the plugin build it.
+
+How ``tolerance`` maps onto the refinement oracle
+-------------------------------------------------
+``tolerance`` is the target relative error of the solution (area-weighted relative
+L1 of per-triangle radiosity against the exact answer). The BF oracle refines a
+link p<-q while ``rho_p * B_q * F_hat_pq > eps_link`` with
+
+    eps_link = link_error_scale * tolerance * B_mean,
+
+where ``B_mean`` is the area-weighted mean radiosity of the current solution
+(so thresholds are relative and the solution is scale invariant), and ``F_hat``
+is the largest point-to-source form factor over the link's receiver samples
+(bounded by 1 even for touching elements). Elements are never split below
+``min_area`` (relative to the total surface area) or below the area at which an
+element's own share of the error drops under the tolerance:
+``A_min = max(min_area, (tolerance * min_area_factor)^2) * A_total``.
+Multigridding starts at ``8 * eps_link`` and halves it per pass, re-solving in
+between, until the oracle holds at ``eps_link`` and the solver has converged to
+``solver_tolerance``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from .errors import SettingsError
+
+SOLVERS = ("gmres", "gauss-seidel", "jacobi")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Options of one radiosity solve.
+
+    Attributes
+    ----------
+    tolerance : float, default 0.01
+        Target relative error of the solution (0 < tolerance < 1), see module docstring.
+    samples_per_link : int, default 16
+        Receiver quadrature points and visibility rays per link (>= 1).
+    seed : int, default 0
+        Seed of every random number; same seed, same input, same variant -> same output.
+    solver : str, default "gmres"
+        Linear solver: "gmres" (Krylov, robust for near-white rooms), "gauss-seidel"
+        (block Gauss-Seidel over input patches) or "jacobi" (plain, slow when rho -> 1).
+    solver_tolerance : float, default 1e-6
+        Relative residual at which the linear solve stops.
+    max_iterations : int, default 2000
+        Largest number of solver sweeps (or Krylov iterations) per solve.
+    min_area : float, default 1e-6
+        Smallest element area relative to the total surface area.
+    min_area_factor : float, default 0.05
+        Elements stop splitting at area (tolerance * min_area_factor)^2 * A_total.
+    link_error_scale : float, default 1.0
+        Scale between the tolerance and the BF oracle threshold (see module docstring).
+    max_refine_passes : int, default 12
+        Largest number of multigridding passes (refine, then solve).
+    max_elements : int, default 2_000_000
+        Safety cap on the element count; refinement stops there with a warning.
+    variant : str or None, default None
+        Mitsuba variant; None picks cuda_ad_rgb with a GPU, else llvm_ad_rgb.
+    quiet : bool, default False
+        No progress bars.
+    """
+
+    tolerance: float = 0.01
+    samples_per_link: int = 16
+    seed: int = 0
+    solver: str = "gmres"
+    solver_tolerance: float = 1e-6
+    max_iterations: int = 2000
+    min_area: float = 1e-6
+    min_area_factor: float = 0.05
+    link_error_scale: float = 1.0
+    max_refine_passes: int = 12
+    max_elements: int = 2_000_000
+    variant: str | None = None
+    quiet: bool = False
+
+    def __post_init__(self) -> None:
+        if not (0.0 < float(self.tolerance) < 1.0):
+            raise SettingsError(
+                f"tolerance={self.tolerance!r} is outside (0, 1); give the target relative error, e.g. 0.01"
+            )
+        if int(self.samples_per_link) != self.samples_per_link or self.samples_per_link < 1:
+            raise SettingsError(
+                f"samples_per_link={self.samples_per_link!r} must be an integer >= 1 (e.g. 16)"
+            )
+        if self.solver not in SOLVERS:
+            raise SettingsError(f"solver={self.solver!r} is unknown; choose one of {', '.join(SOLVERS)}")
+        if not (0.0 < self.solver_tolerance < 1.0):
+            raise SettingsError(f"solver_tolerance={self.solver_tolerance!r} must be in (0, 1), e.g. 1e-6")
+        if self.max_iterations < 1 or self.max_refine_passes < 1 or self.max_elements < 1:
+            raise SettingsError("max_iterations, max_refine_passes and max_elements must be >= 1")
+        if not (0.0 < self.min_area < 1.0):
+            raise SettingsError(f"min_area={self.min_area!r} must be in (0, 1) (relative to total area)")
+        if self.link_error_scale <= 0:
+            raise SettingsError(f"link_error_scale={self.link_error_scale!r} must be > 0")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise SettingsError(f"seed={self.seed!r} must be a non-negative integer")
+
+    def replace(self, **changes) -> "Settings":
+        """Copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+def make_settings(**options) -> Settings:
+    """Build Settings from keyword options, rejecting unknown names with a clear message."""
+    names = {f.name for f in dataclasses.fields(Settings)}
+    unknown = sorted(set(options) - names)
+    if unknown:
+        raise SettingsError(
+            f"unknown option(s) {', '.join(unknown)}; valid options are {', '.join(sorted(names))}"
+        )
+    return Settings(**{k: v for k, v in options.items() if v is not None})

@@ -1,0 +1,270 @@
+"""Hierarchical radiosity driver: link, refine, solve, repeat (multigridding).
+
+    patches -> initial links (facing pairs, vectorised) -> evaluate (visibility.py)
+    loop over passes with a threshold halving towards eps_target:
+        refinement waves: BF oracle on every link, split ends, evaluate new links
+        solve the leaf system (linear.py), warm-started
+    -> Solution
+
+See settings.py for how ``tolerance`` becomes the oracle threshold.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+from tqdm.auto import tqdm
+
+from . import _runtime  # noqa: F401
+from .hierarchy import Elements, Links, facing, triangle_normals
+from .linear import LeafSystem, solve_system
+from .oracle import bf_error, choose_splits, link_uncertainty
+from .scene import Scene
+from .settings import Settings
+from .visibility import Geometry, evaluate_links
+
+#: Corners closer than this fraction of the diagonal to a plane count as in the plane.
+PLANE_EPS = 1e-6
+#: Multigridding starts at 2**COARSE_LEVELS times the target threshold.
+COARSE_LEVELS = 3
+#: Pairs tested per chunk during initial linking.
+_LINK_CHUNK = 1 << 22
+
+
+class Problem:
+    """Arrays of one solve: the scene's patches, the element hierarchy and its links."""
+
+    def __init__(self, scene: Scene, settings: Settings):
+        self.scene = scene
+        self.settings = settings
+        self.channels = 1 if scene.grey else scene.channels
+        tris = scene.patch_tri
+        side = scene.patch_side
+        verts = scene.tri_vertices[tris].copy()
+        verts[side == 1] = verts[side == 1][:, ::-1]           # back sides: reversed winding
+        self.patch_normal = triangle_normals(verts)
+        self.patch_rho = scene.patch_rho[:, : self.channels]
+        self.patch_emission = scene.patch_emission[:, : self.channels]
+        self.patch_curve = (scene.curve_center[tris], scene.curve_axis[tris], scene.curve_radius[tris])
+        self.elements = Elements.from_patches(verts)
+        self.diagonal = scene.diagonal
+        self.total_area = float(scene.tri_area.sum())
+        tol = settings.tolerance
+        self.min_area = max(settings.min_area, (tol * settings.min_area_factor) ** 2) * self.total_area
+        self.links = Links()
+        self.rays = 0
+        self.direct = np.zeros((len(self.elements), self.channels))   # irradiance from point/sky lights
+        self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "solve": 0.0, "direct": 0.0}
+
+    # --- geometry helpers -------------------------------------------------------------------
+    def normals(self, ids=None) -> np.ndarray:
+        patch = self.elements.patch if ids is None else self.elements.patch[ids]
+        return self.patch_normal[patch]
+
+    def rho(self, ids) -> np.ndarray:
+        return self.patch_rho[self.elements.patch[ids]]
+
+    def geometry(self) -> Geometry:
+        e = self.elements
+        c, a, r = (x[e.patch] for x in self.patch_curve)
+        return Geometry.upload(e.verts, self.normals(), c, a, r, self.diagonal)
+
+    def facing_pairs(self, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+        e = self.elements
+        return facing(e.verts[recv], self.normals(recv), e.verts[src], self.normals(src),
+                      PLANE_EPS * self.diagonal)
+
+    # --- links ------------------------------------------------------------------------------
+    def initial_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """All ordered pairs of patches that face each other (chunked, vectorised)."""
+        p = len(self.patch_normal)
+        recv_all, src_all = [], []
+        rows_per_chunk = max(1, _LINK_CHUNK // max(p, 1))
+        cols = np.arange(p)
+        for start in range(0, p, rows_per_chunk):
+            rows = np.arange(start, min(p, start + rows_per_chunk))
+            r = np.repeat(rows, p)
+            s = np.tile(cols, len(rows))
+            keep = r != s
+            r, s = r[keep], s[keep]
+            ok = self.facing_pairs(r, s)
+            recv_all.append(r[ok])
+            src_all.append(s[ok])
+        return np.concatenate(recv_all).astype(np.int32), np.concatenate(src_all).astype(np.int32)
+
+    def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry) -> Links:
+        t = time.perf_counter()
+        wave = evaluate_links(self.scene.mi_scene, geo, recv, src,
+                              samples=self.settings.samples_per_link, seed=self.settings.seed)
+        self.timing["visibility"] += time.perf_counter() - t
+        self.rays += wave.rays
+        return Links(recv.astype(np.int32), src.astype(np.int32), wave.ff, wave.ff_max, wave.vis, wave.ff_std)
+
+    # --- direct light from non-area emitters ------------------------------------------------
+    def update_direct(self, ids: np.ndarray) -> None:
+        """Direct irradiance (W/m^2) of point/spot/directional/sky lights on elements ids."""
+        grown = len(self.elements) - len(self.direct)
+        if grown > 0:
+            self.direct = np.concatenate([self.direct, np.zeros((grown, self.channels))])
+        if not self.scene.light_emitters or len(ids) == 0:
+            return
+        from .emitters import direct_irradiance
+
+        t = time.perf_counter()
+        e = self.elements
+        c, a, r = (x[e.patch[ids]] for x in self.patch_curve)
+        h, rays = direct_irradiance(self.scene, e.verts[ids], self.normals(ids), (c, a, r),
+                                    samples=self.settings.samples_per_link, seed=self.settings.seed,
+                                    keys=ids)
+        self.direct[ids] = h[:, : self.channels]
+        self.rays += rays
+        self.timing["direct"] += time.perf_counter() - t
+
+    # --- the linear system ------------------------------------------------------------------
+    def system(self, leaves: np.ndarray) -> LeafSystem:
+        e = self.elements
+        push = e.ancestor_matrix(leaves)
+        area = e.area
+        pull = sp.diags(1.0 / area) @ push.T.tocsr() @ sp.diags(area[leaves])
+        rho = self.rho(leaves)
+        emission = self.patch_emission[e.patch[leaves]] + rho * (push @ self.direct)
+        return LeafSystem(push.tocsr(), self.links.matrix(len(e)), pull.tocsr(), rho, emission)
+
+
+def solve_problem(scene: Scene, settings: Settings):
+    """Run hierarchical radiosity on a loaded scene; returns a Solution."""
+    from .solution import Solution
+
+    t_start = time.perf_counter()
+    prob = Problem(scene, settings)
+    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)
+
+    # --- initial linking and first solve ------------------------------------------------------
+    t = time.perf_counter()
+    recv, src = prob.initial_pairs()
+    prob.timing["link"] += time.perf_counter() - t
+    geo = prob.geometry()
+    prob.links = prob.evaluate(recv, src, geo)
+    prob.update_direct(np.arange(len(prob.elements)))
+    leaves = prob.elements.leaves
+    system = prob.system(leaves)
+    t = time.perf_counter()
+    b_leaf, iterations, residual = solve_system(system, system.emission.copy(), method=settings.solver,
+                                                tol=settings.solver_tolerance,
+                                                max_iterations=settings.max_iterations)
+    prob.timing["solve"] += time.perf_counter() - t
+    total_iterations = iterations
+    bar.update(1)
+
+    # --- multigridding: refine with a halving threshold, re-solve -----------------------------
+    passes = 0
+    capped = False
+    for level in range(settings.max_refine_passes):
+        b_elem = system.pull @ b_leaf
+        b_mean = _mean_radiosity(b_leaf, prob.elements.area[leaves])
+        eps_target = settings.link_error_scale * settings.tolerance * b_mean
+        eps = eps_target * 2.0 ** max(0, COARSE_LEVELS - level)
+        t = time.perf_counter()
+        refined, capped = _refine(prob, b_elem, eps)
+        prob.timing["refine"] += time.perf_counter() - t - 0.0
+        passes += 1
+        if refined:
+            leaves = prob.elements.leaves
+            system = prob.system(leaves)
+            x0 = (prob.b_elem_cache)[leaves]
+            t = time.perf_counter()
+            b_leaf, iterations, residual = solve_system(system, x0, method=settings.solver,
+                                                        tol=settings.solver_tolerance,
+                                                        max_iterations=settings.max_iterations)
+            prob.timing["solve"] += time.perf_counter() - t
+            total_iterations += iterations
+        bar.update(1)
+        bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
+        if (not refined and eps <= eps_target) or capped:
+            break
+    bar.close()
+    if capped:
+        warnings.warn(f"refinement stopped at max_elements={settings.max_elements}; "
+                      "raise it or the tolerance", stacklevel=2)
+
+    # --- results --------------------------------------------------------------------------------
+    h_leaf = system.gather(b_leaf) + system.push @ prob.direct
+    uncertainty = link_uncertainty(prob.links.ff_std, prob.rho(prob.links.recv),
+                                   (system.pull @ b_leaf)[prob.links.src])
+    per_elem = np.bincount(prob.links.recv, weights=uncertainty, minlength=len(prob.elements))
+    err_leaf = system.push @ per_elem
+    rho_max = float(prob.patch_rho.max()) if prob.patch_rho.size else 0.0
+    area_leaf = prob.elements.area[leaves]
+    mean_b = _mean_radiosity(b_leaf, area_leaf)
+    estimated = float((area_leaf * err_leaf).sum() / max(area_leaf.sum() * mean_b, 1e-300))
+    estimated /= max(1.0 - rho_max, 0.05) ** 0.5
+    prob.timing["total"] = time.perf_counter() - t_start
+    stats = {
+        "elements": int(len(prob.elements)),
+        "leaves": int(len(leaves)),
+        "links": int(len(prob.links)),
+        "rays": int(prob.rays),
+        "seconds": {k: round(v, 4) for k, v in prob.timing.items()},
+        "estimated_error": estimated,
+        "solver": settings.solver,
+        "solver_iterations": int(total_iterations),
+        "solver_residual": float(residual),
+        "refine_passes": passes,
+        "min_element_area": prob.min_area,
+        "capped": bool(capped),
+        "features": scene.features,
+        "variant": scene.variant,
+        "memory_bytes": {"elements": prob.elements.nbytes, "links": prob.links.nbytes},
+        "settings": {k: getattr(settings, k) for k in ("tolerance", "samples_per_link", "seed", "solver")},
+        "warnings": list(scene.warnings),
+    }
+    err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
+    return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats)
+
+
+def _mean_radiosity(b_leaf: np.ndarray, area: np.ndarray) -> float:
+    mean = float((area[:, None] * b_leaf).sum() / max(area.sum() * b_leaf.shape[1], 1e-300))
+    return mean if mean > 0 else 1e-300
+
+
+def _refine(prob: Problem, b_elem: np.ndarray, eps: float) -> tuple[bool, bool]:
+    """Refinement waves at threshold eps until every link passes; returns (refined, capped)."""
+    e = prob.elements
+    refined = False
+    capped = False
+    while True:
+        links = prob.links
+        rho = prob.rho(links.recv)
+        error = bf_error(links.ff_max, rho, b_elem[links.src])
+        can_split = e.area > prob.min_area
+        split_src, split_recv = choose_splits(error, eps, e.area[links.recv], e.area[links.src],
+                                              can_split[links.recv], can_split[links.src])
+        if not (split_src.any() or split_recv.any()):
+            break
+        if len(e) >= prob.settings.max_elements:
+            capped = True
+            break
+        refined = True
+        n_before = len(e)
+        e.split(np.concatenate([links.src[split_src], links.recv[split_recv]]))
+        # children inherit their parent's radiosity until the next solve
+        parent_of_new = e.parent[n_before:]
+        b_elem = np.concatenate([b_elem, b_elem[parent_of_new]])
+        prob.update_direct(np.arange(n_before, len(e)))
+
+        owner, child = e.children_pairs(links.src[split_src])
+        new_recv = links.recv[split_src][owner]
+        new_src = child
+        owner, child = e.children_pairs(links.recv[split_recv])
+        new_recv = np.concatenate([new_recv, child])
+        new_src = np.concatenate([new_src, links.src[split_recv][owner]])
+        ok = prob.facing_pairs(new_recv, new_src)
+        new_recv, new_src = new_recv[ok], new_src[ok]
+        geo = prob.geometry()
+        new_links = prob.evaluate(new_recv, new_src, geo)
+        prob.links = links.select(~(split_src | split_recv)).extend(new_links)
+    prob.b_elem_cache = b_elem
+    return refined, capped

@@ -1,0 +1,274 @@
+"""Fused Dr.Jit waves: sample points, form-factor kernel, shadow rays, per-link reduction.
+
+One call evaluates every link of a refinement wave. Element corners stay in
+Dr.Jit arrays; each lane (link, sample k) gathers its receiver and source
+corners, draws a stratified jittered point on each (hash-based random numbers,
+so results depend only on the seed and the element ids), evaluates Lambert's
+point-to-triangle form factor to the source, traces one shadow ray with
+``mi.Scene.ray_test`` and the link's sums are reduced with ``dr.block_sum``.
+Only per-link results come back to numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _runtime  # noqa: F401
+from .formfactor import point_to_triangle_dr
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+#: Ray origins are lifted off the surface by this fraction of the scene diagonal.
+RAY_OFFSET = 1e-5
+#: Lanes per Dr.Jit launch (bounds memory: ~0.3 KB per lane in flight).
+MAX_LANES = 1 << 22
+
+
+def _f(a) -> "mi.Float":
+    return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def _v(a) -> "mi.Vector3f":
+    a = np.asarray(a, dtype=np.float32)
+    return mi.Vector3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
+
+
+@dataclass
+class Geometry:
+    """Element geometry resident in Dr.Jit (float32), one entry per element.
+
+    v0, v1, v2, normal : mi.Vector3f; curve_center, curve_axis : mi.Vector3f; curve_radius : mi.Float
+    (curve_radius > 0: sample points are projected onto the true sphere/cylinder).
+    """
+
+    v0: object
+    v1: object
+    v2: object
+    normal: object
+    curve_center: object
+    curve_axis: object
+    curve_radius: object
+    offset: float
+    size: int
+
+    @classmethod
+    def upload(cls, verts, normal, curve_center, curve_axis, curve_radius, diagonal) -> "Geometry":
+        return cls(_v(verts[:, 0]), _v(verts[:, 1]), _v(verts[:, 2]), _v(normal), _v(curve_center),
+                   _v(curve_axis), _f(curve_radius), float(RAY_OFFSET * diagonal), len(verts))
+
+    def gather(self, idx):
+        """Corners, normal and curve data of elements idx (mi.UInt32)."""
+        g = lambda arr: dr.gather(type(arr), arr, idx)  # noqa: E731
+        return (g(self.v0), g(self.v1), g(self.v2), g(self.normal),
+                g(self.curve_center), g(self.curve_axis), g(self.curve_radius))
+
+
+# ------------------------------------------------------------------------------------------
+# Random numbers and sampling
+# ------------------------------------------------------------------------------------------
+
+def hash_u32(x):
+    """Integer hash (lowbias32) of a mi.UInt32 array."""
+    x = x ^ (x >> 16)
+    x = x * 0x7FEB352D
+    x = x ^ (x >> 15)
+    x = x * 0x846CA68B
+    return x ^ (x >> 16)
+
+
+def to_unit(x):
+    """mi.UInt32 hash -> mi.Float in [0, 1)."""
+    return mi.Float(x >> 8) * (1.0 / (1 << 24))
+
+
+def stratified(k, n: int, key):
+    """Jittered point of stratum k (of n) in [0,1)^2: (u, v) mi.Float."""
+    gx = int(math.ceil(math.sqrt(n)))
+    gy = int(math.ceil(n / gx))
+    ju = to_unit(hash_u32(key ^ 0x68E31DA4))
+    jv = to_unit(hash_u32(key ^ 0xB5297A4D))
+    u = (mi.Float(k % gx) + ju) * (1.0 / gx)
+    v = (mi.Float(k // gx) + jv) * (1.0 / gy)
+    return u, v
+
+
+def triangle_point(v0, v1, v2, u, v):
+    """Uniform point on a triangle from (u, v) in [0,1)^2 (square-root warp)."""
+    su = dr.sqrt(u)
+    return v0 * (1 - su) + v1 * (su * (1 - v)) + v2 * (su * v)
+
+
+def project_to_surface(p, n, center, axis, radius):
+    """Move points of tessellated spheres/cylinders onto the true surface; returns (p, n)."""
+    d = p - center
+    radial = d - axis * dr.dot(d, axis)
+    rlen = dr.norm(radial)
+    curved = (radius > 0) & (rlen > 0)
+    direction = radial / dr.select(rlen > 0, rlen, 1.0)
+    flip = dr.select(dr.dot(direction, n) < 0, -1.0, 1.0)  # back-side patches face inwards
+    p_true = p + direction * (radius - rlen)
+    return dr.select(curved, p_true, p), dr.select(curved, direction * flip, n)
+
+
+def count_true(mask) -> int:
+    """Number of set lanes of a mi.Bool."""
+    return int(dr.count(mask)[0]) if dr.width(mask) else 0
+
+
+def _coprime_step(n: int) -> int:
+    for q in (5, 7, 11, 13, 3, 17, 19, 23):
+        if math.gcd(q, n) == 1 and q < n:
+            return q
+    return 1
+
+
+# ------------------------------------------------------------------------------------------
+# The link wave
+# ------------------------------------------------------------------------------------------
+
+@dataclass
+class LinkWave:
+    """Per-link results of one wave (numpy, float32/float64)."""
+
+    ff: np.ndarray
+    ff_max: np.ndarray
+    vis: np.ndarray
+    ff_std: np.ndarray
+    rays: int
+
+
+def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *,
+                   samples: int, seed: int) -> LinkWave:
+    """Form factor, visibility and kernel statistics of links recv <- src.
+
+    Parameters
+    ----------
+    recv, src : (M,) int element ids
+    samples : receiver points (and shadow rays) per link
+    """
+    m = len(recv)
+    out = [np.zeros(m, np.float64) for _ in range(4)]
+    rays = 0
+    per_launch = max(1, MAX_LANES // samples)
+    for start in range(0, m, per_launch):
+        stop = min(m, start + per_launch)
+        res = _link_kernel(mi_scene, geo, recv[start:stop], src[start:stop], samples, seed)
+        for o, r in zip(out, res[:4]):
+            o[start:stop] = r
+        rays += res[4]
+    ff, ff_max, vis, ff_std = out
+    return LinkWave(ff.astype(np.float32), ff_max.astype(np.float32), vis.astype(np.float32),
+                    ff_std.astype(np.float32), rays)
+
+
+def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
+    m = len(recv)
+    recv_dr = mi.UInt32(np.ascontiguousarray(recv, dtype=np.uint32))
+    src_dr = mi.UInt32(np.ascontiguousarray(src, dtype=np.uint32))
+    lane = dr.arange(mi.UInt32, m * n)
+    link = lane // n
+    k = lane % n
+    r = dr.gather(mi.UInt32, recv_dr, link)
+    s = dr.gather(mi.UInt32, src_dr, link)
+
+    # --- stratified jittered sample points on receiver and source -----------------------
+    pair_key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s)
+    lane_key = hash_u32(pair_key + k * 0x632BE5AB)
+    rv0, rv1, rv2, rn, rc, ra, rr = geo.gather(r)
+    sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(s)
+    ur, vr = stratified(k, n, lane_key)
+    k_src = (k * _coprime_step(n) + 3) % n
+    us, vs = stratified(k_src, n, hash_u32(lane_key ^ 0x1B873593))
+    x = triangle_point(rv0, rv1, rv2, ur, vr)
+    y = triangle_point(sv0, sv1, sv2, us, vs)
+
+    # --- unoccluded kernel: Lambert's form factor from x to the whole source triangle ---
+    front = dr.dot(sn, x - sv0) > 0
+    g = dr.select(front, point_to_triangle_dr(x, rn, sv0, sv1, sv2), 0.0)
+
+    # --- one shadow ray per lane, only where the kernel is non-zero ----------------------
+    xs, xn = project_to_surface(x, rn, rc, ra, rr)
+    ys, yn = project_to_surface(y, sn, sc, sa, sr)
+    o = xs + xn * geo.offset
+    target = ys + yn * geo.offset
+    d = target - o
+    dist = dr.norm(d)
+    active = (g > 0) & (dist > 0) & (dr.dot(d, rn) > 0) & (dr.dot(d, sn) < 0)
+    ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
+    ray.maxt = dist * (1 - 1e-4)
+    blocked = mi_scene.ray_test(ray, active)
+    v = dr.select(active & ~blocked, 1.0, 0.0)
+    gv = g * v
+
+    # --- per-link reduction --------------------------------------------------------------
+    # F = mean_k G(x_k) * V_K, with V_K the kernel-weighted visible fraction of the sample
+    # pairs: sum K(x_k, y_k) v_k / sum K(x_k, y_k). Weighting the rays by the point-to-point
+    # kernel keeps grazing (nearly irrelevant) blocked rays from darkening the link.
+    inv_n = 1.0 / n
+    kernel = dr.select(active, dr.dot(d, rn) * -dr.dot(d, sn) / dr.square(dr.square(dist)), 0.0)
+    g_mean = dr.block_sum(g, n) * inv_n
+    k_sum = dr.block_sum(kernel, n)
+    kv_sum = dr.block_sum(kernel * v, n)
+    ff_max = dr.block_reduce(dr.ReduceOp.Max, g, n)
+    sq = dr.block_sum(gv * gv, n) * inv_n
+    gv_mean = dr.block_sum(gv, n) * inv_n
+    dr.eval(g_mean, k_sum, kv_sum, ff_max, sq, gv_mean)
+    ks = k_sum.numpy().astype(np.float64)
+    vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 1.0)
+    ff_np = g_mean.numpy().astype(np.float64) * vis_np
+    gvm = gv_mean.numpy().astype(np.float64)
+    var = np.maximum(sq.numpy().astype(np.float64) - gvm * gvm, 0.0)
+    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), count_true(active)
+
+
+# ------------------------------------------------------------------------------------------
+# Point gathers: irradiance at arbitrary points from the solution's leaves
+# ------------------------------------------------------------------------------------------
+
+def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geometry,
+                     radiosity: np.ndarray, *, rays: int, seed: int) -> np.ndarray:
+    """Irradiance (P, C), W/m^2, at points (P, 3) with normals (P, 3) from every leaf.
+
+    H(x) = sum_l B_l * F(dA_x -> leaf l) * v(x, l), with Lambert's analytic form factor
+    and v the fraction of ``rays`` stratified shadow rays from x to leaf l that arrive.
+    ``geo`` holds the leaves only; ``radiosity`` is (L, C).
+    """
+    n_pts, n_leaf = len(points), geo.size
+    channels = radiosity.shape[1]
+    b_dr = [_f(radiosity[:, c]) for c in range(channels)]
+    pts_per_launch = max(1, MAX_LANES // max(1, n_leaf * rays))
+    out = np.zeros((n_pts, channels))
+    for start in range(0, n_pts, pts_per_launch):
+        stop = min(n_pts, start + pts_per_launch)
+        m = stop - start
+        p_dr, n_dr = _v(points[start:stop]), _v(normals[start:stop])
+        lane = dr.arange(mi.UInt32, m * n_leaf * rays)
+        k = lane % rays
+        pair = lane // rays
+        leaf = pair % n_leaf
+        pidx = pair // n_leaf
+        x = dr.gather(mi.Vector3f, p_dr, pidx)
+        nx = dr.gather(mi.Vector3f, n_dr, pidx)
+        sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(leaf)
+        key = hash_u32(hash_u32(pidx + mi.UInt32(start) + hash_u32(mi.UInt32(seed))) + leaf * 0x632BE5AB + k)
+        front = dr.dot(sn, x - sv0) > 0
+        g = dr.select(front, point_to_triangle_dr(x, nx, sv0, sv1, sv2), 0.0)
+        us, vs = stratified(k, rays, key)
+        y = triangle_point(sv0, sv1, sv2, us, vs)
+        ys, yn = project_to_surface(y, sn, sc, sa, sr)
+        o = x + nx * geo.offset
+        d = ys + yn * geo.offset - o
+        dist = dr.norm(d)
+        active = (g > 0) & (dist > 0)
+        ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
+        ray.maxt = dist * (1 - 1e-4)
+        blocked = mi_scene.ray_test(ray, active)
+        weight = dr.select(active & ~blocked, g * (1.0 / rays), 0.0)
+        for c in range(channels):
+            h = dr.block_sum(weight * dr.gather(mi.Float, b_dr[c], leaf), n_leaf * rays)
+            out[start:stop, c] = h.numpy()
+    return out
