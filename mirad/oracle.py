@@ -1,5 +1,15 @@
 """Refinement oracles: decide per link whether to keep it or split one of its ends.
 
+Kernel oracle (default; Bekaert-Willems 96 style, THEORY O4): refine link p <- q while
+
+    rho_p * B_q * std_k[G(x_k) v_k] > eps,
+
+where G(x_k) v_k are the sampled point-to-source form factors (visibility
+included) at the link's receiver points. The spread of the kernel over the
+receiver is what a constant-per-element link gets wrong: it sees 1/r^2 variation
+near contact, shadow boundaries, and the far-field/near-field mismatch that makes
+coarse links over-light elements next to a corner.
+
 BF oracle (Hanrahan-Salzman-Aupperle 91): refine link p <- q while
 
     rho_p * B_q * F_hat_pq > eps,
@@ -18,6 +28,23 @@ import numpy as np
 def bf_error(ff_max: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
     """(M,) BF link error, W/m^2: max over channels of rho_p * B_q, times F_hat."""
     return ff_max.astype(np.float64) * np.max(rho_recv * b_src, axis=1)
+
+
+ORACLES = ("kernel", "bf")
+
+
+def link_error(oracle: str, links, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
+    """(M,) error of each link under the named oracle, W/m^2."""
+    if oracle == "bf":
+        return bf_error(links.ff_max, rho_recv, b_src)
+    if oracle == "kernel":
+        return kernel_error(links.ff_std, rho_recv, b_src)
+    raise ValueError(f"unknown oracle {oracle!r}; choose one of {', '.join(ORACLES)}")
+
+
+def kernel_error(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
+    """(M,) kernel-variation link error, W/m^2: max over channels of rho_p * B_q, times std_k(G v)."""
+    return ff_std.astype(np.float64) * np.max(rho_recv * b_src, axis=1)
 
 
 def link_uncertainty(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from .errors import SettingsError
 
 SOLVERS = ("gmres", "gauss-seidel", "jacobi")
+ORACLES = ("kernel", "bf")
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,9 @@ class Settings:
     solver : str, default "gmres"
         Linear solver: "gmres" (Krylov, robust for near-white rooms), "gauss-seidel"
         (block Gauss-Seidel over input patches) or "jacobi" (plain, slow when rho -> 1).
+    oracle : str, default "kernel"
+        Refinement oracle: "kernel" (spread of the sampled kernel over the receiver,
+        weighted by rho * B_source) or "bf" (rho * B_source * F_hat, Hanrahan et al. 91).
     solver_tolerance : float, default 1e-6
         Relative residual at which the linear solve stops.
     max_iterations : int, default 2000
@@ -69,6 +73,7 @@ class Settings:
     samples_per_link: int = 16
     seed: int = 0
     solver: str = "gmres"
+    oracle: str = "kernel"
     solver_tolerance: float = 1e-6
     max_iterations: int = 2000
     min_area: float = 1e-6
@@ -90,6 +95,8 @@ class Settings:
             )
         if self.solver not in SOLVERS:
             raise SettingsError(f"solver={self.solver!r} is unknown; choose one of {', '.join(SOLVERS)}")
+        if self.oracle not in ORACLES:
+            raise SettingsError(f"oracle={self.oracle!r} is unknown; choose one of {', '.join(ORACLES)}")
         if not (0.0 < self.solver_tolerance < 1.0):
             raise SettingsError(f"solver_tolerance={self.solver_tolerance!r} must be in (0, 1), e.g. 1e-6")
         if self.max_iterations < 1 or self.max_refine_passes < 1 or self.max_elements < 1:

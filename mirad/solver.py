@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from . import _runtime  # noqa: F401
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
-from .oracle import bf_error, choose_splits, link_uncertainty
+from .oracle import choose_splits, link_error, link_uncertainty
 from .scene import Scene
 from .settings import Settings
 from .visibility import Geometry, evaluate_links
@@ -238,7 +238,7 @@ def _refine(prob: Problem, b_elem: np.ndarray, eps: float) -> tuple[bool, bool]:
     while True:
         links = prob.links
         rho = prob.rho(links.recv)
-        error = bf_error(links.ff_max, rho, b_elem[links.src])
+        error = link_error(prob.settings.oracle, links, rho, b_elem[links.src])
         can_split = e.area > prob.min_area
         split_src, split_recv = choose_splits(error, eps, e.area[links.recv], e.area[links.src],
                                               can_split[links.recv], can_split[links.src])

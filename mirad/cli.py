@@ -1,0 +1,108 @@
+"""Command line: ``mirad solve | info``. Parses arguments and calls the Python API only."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mirad", description="Hierarchical radiosity for Mitsuba 3 scenes.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("scene", help="Mitsuba scene XML file")
+    common.add_argument("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb with a GPU, else llvm_ad_rgb)")
+    common.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    solve = sub.add_parser("solve", parents=[common], help="solve the radiosity and write it out")
+    solve.add_argument("-o", "--output", required=True, help="output file: .ply (vertex colours) or .npz (full solution)")
+    solve.add_argument("--tolerance", type=float, default=0.01, help="target relative error (default 0.01)")
+    solve.add_argument("--samples-per-link", type=int, default=16, help="shadow rays per link (default 16)")
+    solve.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    solve.add_argument("--solver", choices=["gmres", "gauss-seidel", "jacobi"], default=None,
+                       help="linear solver (default gmres)")
+    solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
+
+    sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
+    return parser
+
+
+def _solve(args) -> int:
+    import mirad
+    from mirad.solution import atomic_write
+
+    _check_output(args.output, (".ply", ".npz"))
+    sol = mirad.solve(args.scene, tolerance=args.tolerance, samples_per_link=args.samples_per_link,
+                      seed=args.seed, solver=args.solver, variant=args.variant, quiet=args.quiet)
+    sol.save(args.output)
+    if args.stats:
+        text = json.dumps(sol.stats, indent=2, default=str).encode()
+        atomic_write(args.stats, lambda handle: handle.write(text))
+    if not args.quiet:
+        print(sol.summary())
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _info(args) -> int:
+    import mirad
+
+    scene = mirad.load_scene(args.scene, variant=args.variant)
+    features = scene.features
+    print(f"scene {args.scene}: {features['shapes']} shapes, {features['triangles']} triangles, "
+          f"fingerprint {scene.fingerprint}, variant {scene.variant}")
+    for sid, kind in zip(scene.shape_ids, scene.shape_types):
+        print(f"  shape {sid!r}: {kind}")
+    print("switched on:")
+    print(f"  channels solved: {features['channels']} ({'grey scene' if features['channels'] == 1 else 'RGB'})")
+    print(f"  back-side elements: {features['back_side_patches']} (two-sided BSDFs)")
+    print(f"  emitters: {features['emitters']}")
+    print(f"  direct-light pass for point/spot/directional/environment lights: "
+          f"{'on' if features['direct_light_pass'] else 'off'}")
+    print(f"  curved surfaces projected for visibility: {features['curved_shapes']} triangles")
+    if features["non_diffuse_approximated"]:
+        print(f"  non-diffuse BSDFs approximated by their albedo: {features['non_diffuse_approximated']}")
+    if features["dropped_zero_area_triangles"]:
+        print(f"  zero-area triangles dropped: {features['dropped_zero_area_triangles']}")
+    return 0
+
+
+def _check_output(path: str, suffixes: tuple) -> None:
+    from mirad.errors import OutputError
+
+    if os.path.splitext(path)[1].lower() not in suffixes:
+        raise OutputError(f"output '{path}' must end in one of {', '.join(suffixes)}")
+    folder = os.path.dirname(path) or "."
+    if not os.path.isdir(folder):
+        raise OutputError(f"cannot write '{path}': folder '{folder}' does not exist; create it first")
+    if not os.access(folder, os.W_OK):
+        raise OutputError(f"cannot write '{path}': folder '{folder}' is not writable")
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        from mirad.errors import MiradError
+    except Exception as exc:  # pragma: no cover - broken installation
+        print(f"mirad: error: cannot import mirad ({exc})", file=sys.stderr)
+        return 2
+    try:
+        return {"solve": _solve, "info": _info}[args.command](args)
+    except MiradError as exc:
+        print(f"mirad: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mirad: interrupted; no output was written", file=sys.stderr)
+        return 130
+    except Exception as exc:  # never a traceback for users; MIRAD_DEBUG=1 shows it
+        if os.environ.get("MIRAD_DEBUG"):
+            raise
+        print(f"mirad: error: {type(exc).__name__}: {exc} (set MIRAD_DEBUG=1 for a traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
