@@ -181,6 +181,7 @@ class Links:
     ff_max : (M,) float32     largest unoccluded point form factor over the receiver samples
     vis : (M,) float32        fraction of unoccluded sample rays
     ff_std : (M,) float32     standard deviation of the sampled kernel (with visibility)
+    ff_range : (M,) float32   max - min of the unoccluded kernel over samples and receiver corners
     """
 
     recv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -189,8 +190,9 @@ class Links:
     ff_max: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     vis: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     ff_std: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    ff_range: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
-    _FIELDS = ("recv", "src", "ff", "ff_max", "vis", "ff_std")
+    _FIELDS = ("recv", "src", "ff", "ff_max", "vis", "ff_std", "ff_range")
 
     def __len__(self) -> int:
         return len(self.recv)

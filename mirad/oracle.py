@@ -38,7 +38,7 @@ def link_error(oracle: str, links, rho_recv: np.ndarray, b_src: np.ndarray) -> n
     if oracle == "bf":
         return bf_error(links.ff_max, rho_recv, b_src)
     if oracle == "kernel":
-        return kernel_error(links.ff_std, rho_recv, b_src)
+        return kernel_error(np.maximum(links.ff_std, 0.5 * links.ff_range * links.vis), rho_recv, b_src)
     raise ValueError(f"unknown oracle {oracle!r}; choose one of {', '.join(ORACLES)}")
 
 
@@ -58,9 +58,17 @@ def link_uncertainty(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray
 
 
 def choose_splits(error: np.ndarray, eps: float, area_recv: np.ndarray, area_src: np.ndarray,
-                  can_split_recv: np.ndarray, can_split_src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean masks (split source, split receiver) for the links whose error exceeds eps."""
+                  can_split_recv: np.ndarray, can_split_src: np.ndarray,
+                  prefer_source: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (split source, split receiver) for the links whose error exceeds eps.
+
+    The larger end is split, or the source where ``prefer_source`` says the error comes
+    from the source's own radiosity variation; an end at the minimum area is never split.
+    """
     want = error > eps
-    split_src = want & can_split_src & ((area_src >= area_recv) | ~can_split_recv)
+    pick_src = area_src >= area_recv
+    if prefer_source is not None:
+        pick_src = pick_src | prefer_source
+    split_src = want & can_split_src & (pick_src | ~can_split_recv)
     split_recv = want & can_split_recv & ~split_src
     return split_src, split_recv

@@ -57,7 +57,7 @@ class Settings:
         Smallest element area relative to the total surface area.
     min_area_factor : float, default 0.05
         Elements stop splitting at area (tolerance * min_area_factor)^2 * A_total.
-    link_error_scale : float, default 1.0
+    link_error_scale : float, default 10.0
         Scale between the tolerance and the BF oracle threshold (see module docstring).
     max_refine_passes : int, default 12
         Largest number of multigridding passes (refine, then solve).
@@ -78,7 +78,7 @@ class Settings:
     max_iterations: int = 2000
     min_area: float = 1e-6
     min_area_factor: float = 0.05
-    link_error_scale: float = 1.0
+    link_error_scale: float = 10.0
     max_refine_passes: int = 12
     max_elements: int = 2_000_000
     variant: str | None = None

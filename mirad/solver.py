@@ -95,13 +95,16 @@ class Problem:
             src_all.append(s[ok])
         return np.concatenate(recv_all).astype(np.int32), np.concatenate(src_all).astype(np.int32)
 
-    def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry) -> Links:
+    def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry, *, stream: int = 0) -> Links:
+        """Evaluate links; ``stream`` selects an independent random sequence."""
         t = time.perf_counter()
+        seed = self.settings.seed + 0x10000 * stream
         wave = evaluate_links(self.scene.mi_scene, geo, recv, src,
-                              samples=self.settings.samples_per_link, seed=self.settings.seed)
+                              samples=self.settings.samples_per_link, seed=seed)
         self.timing["visibility"] += time.perf_counter() - t
         self.rays += wave.rays
-        return Links(recv.astype(np.int32), src.astype(np.int32), wave.ff, wave.ff_max, wave.vis, wave.ff_std)
+        return Links(recv.astype(np.int32), src.astype(np.int32), wave.ff, wave.ff_max, wave.vis,
+                     wave.ff_std, wave.ff_range)
 
     # --- direct light from non-area emitters ------------------------------------------------
     def update_direct(self, ids: np.ndarray) -> None:
@@ -131,7 +134,8 @@ class Problem:
         pull = sp.diags(1.0 / area) @ push.T.tocsr() @ sp.diags(area[leaves])
         rho = self.rho(leaves)
         emission = self.patch_emission[e.patch[leaves]] + rho * (push @ self.direct)
-        return LeafSystem(push.tocsr(), self.links.matrix(len(e)), pull.tocsr(), rho, emission)
+        links = self.links.matrix(len(e))
+        return LeafSystem(push.tocsr(), links, pull.tocsr(), rho, emission)
 
 
 def solve_problem(scene: Scene, settings: Settings):
@@ -168,7 +172,8 @@ def solve_problem(scene: Scene, settings: Settings):
         eps_target = settings.link_error_scale * settings.tolerance * b_mean
         eps = eps_target * 2.0 ** max(0, COARSE_LEVELS - level)
         t = time.perf_counter()
-        refined, capped = _refine(prob, b_elem, eps)
+        spread = _radiosity_spread(prob, system, b_elem)
+        refined, capped = _refine(prob, b_elem, spread, eps)
         prob.timing["refine"] += time.perf_counter() - t - 0.0
         passes += 1
         if refined:
@@ -185,6 +190,19 @@ def solve_problem(scene: Scene, settings: Settings):
         bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
         if (not refined and eps <= eps_target) or capped:
             break
+    # --- final estimate with fresh samples --------------------------------------------------
+    # The oracle kept exactly the links whose samples looked smooth; estimating them from
+    # the same samples would bias F low (samples that missed a kernel peak both look smooth
+    # and under-estimate). Re-evaluating every link with an independent random stream
+    # decouples selection from estimation.
+    prob.links = prob.evaluate(prob.links.recv, prob.links.src, prob.geometry(), stream=1)
+    system = prob.system(leaves)
+    t = time.perf_counter()
+    b_leaf, iterations, residual = solve_system(system, b_leaf, method=settings.solver,
+                                                tol=settings.solver_tolerance,
+                                                max_iterations=settings.max_iterations)
+    prob.timing["solve"] += time.perf_counter() - t
+    total_iterations += iterations
     bar.close()
     if capped:
         warnings.warn(f"refinement stopped at max_elements={settings.max_elements}; "
@@ -192,15 +210,23 @@ def solve_problem(scene: Scene, settings: Settings):
 
     # --- results --------------------------------------------------------------------------------
     h_leaf = system.gather(b_leaf) + system.push @ prob.direct
-    uncertainty = link_uncertainty(prob.links.ff_std, prob.rho(prob.links.recv),
-                                   (system.pull @ b_leaf)[prob.links.src])
-    per_elem = np.bincount(prob.links.recv, weights=uncertainty, minlength=len(prob.elements))
+    # Error estimate (relative, same norm as the validation metric): per link, the sampling
+    # error of its transfer (rho B_src std(G v) / sqrt(n)) plus the source-representation
+    # error (rho F spread_src), summed per element and pushed to the leaves; amplified by the
+    # interreflection factor 1 / (1 - rho_mean) that carries local errors through the scene.
+    b_elem = system.pull @ b_leaf
+    links = prob.links
+    rho_l = prob.rho(links.recv)
+    spread = _radiosity_spread(prob, system, b_elem)
+    per_link = (link_uncertainty(links.ff_std, rho_l, b_elem[links.src]) / np.sqrt(settings.samples_per_link)
+                + links.ff * rho_l.mean(axis=1) * spread[links.src])
+    per_elem = np.bincount(links.recv, weights=per_link, minlength=len(prob.elements))
     err_leaf = system.push @ per_elem
-    rho_max = float(prob.patch_rho.max()) if prob.patch_rho.size else 0.0
     area_leaf = prob.elements.area[leaves]
     mean_b = _mean_radiosity(b_leaf, area_leaf)
+    rho_mean = float(_mean_radiosity(system.rho, area_leaf)) if system.rho.any() else 0.0
     estimated = float((area_leaf * err_leaf).sum() / max(area_leaf.sum() * mean_b, 1e-300))
-    estimated /= max(1.0 - rho_max, 0.05) ** 0.5
+    estimated /= max(1.0 - rho_mean, 0.05)
     prob.timing["total"] = time.perf_counter() - t_start
     stats = {
         "elements": int(len(prob.elements)),
@@ -230,18 +256,51 @@ def _mean_radiosity(b_leaf: np.ndarray, area: np.ndarray) -> float:
     return mean if mean > 0 else 1e-300
 
 
-def _refine(prob: Problem, b_elem: np.ndarray, eps: float) -> tuple[bool, bool]:
+def _radiosity_spread(prob: Problem, system: LeafSystem, b_elem: np.ndarray) -> np.ndarray:
+    """(N,) variation of radiosity inside each element, W/m^2 (max over channels).
+
+    A link carries its source's mean radiosity; what that hides is how the radiosity
+    varies over the source. Where the source already has leaves below it, that is
+    measured: the area-weighted mean |B_leaf - B_element| over its leaves. A leaf's own
+    variation is estimated from its incoming links' kernel spread (rho * B_src * std(G v)).
+    """
+    links = prob.links
+    u = link_uncertainty(links.ff_std, prob.rho(links.recv), b_elem[links.src])
+    per_elem = np.bincount(links.recv, weights=u, minlength=len(prob.elements))
+    estimated = system.pull @ (system.push @ per_elem)
+    pull = system.pull.tocoo()
+    b_leaf = b_elem[prob.elements.leaves]
+    deviation = np.abs(b_leaf[pull.col] - b_elem[pull.row]).max(axis=1)
+    measured = np.bincount(pull.row, weights=pull.data * deviation, minlength=len(prob.elements))
+    return np.maximum(measured, estimated)
+
+
+def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -> tuple[bool, bool]:
     """Refinement waves at threshold eps until every link passes; returns (refined, capped)."""
     e = prob.elements
     refined = False
     capped = False
+    checked = 0  # links [0, checked) passed the oracle at this eps; later ones are new
     while True:
         links = prob.links
-        rho = prob.rho(links.recv)
-        error = link_error(prob.settings.oracle, links, rho, b_elem[links.src])
+        fresh = np.arange(checked, len(links))
+        recv, src = links.recv[fresh], links.src[fresh]
+        rho = prob.rho(recv)
+        error = link_error(prob.settings.oracle, links.select(fresh), rho, b_elem[src])
+        # source term: the link carries the source's mean radiosity, off by its spread
+        source_error = links.ff[fresh] * rho.max(axis=1) * spread[src]
+        both = error + source_error
+        # receiver test: links that are each fine can still add up to a badly represented
+        # receiver (all four walls' dim tops lighting a ceiling err the same way; a coarse
+        # element by a corner gathers its far field as if it saw a whole hemisphere); then
+        # refine its above-average links too
+        total = np.bincount(recv, weights=both, minlength=len(e))
+        count = np.bincount(recv, minlength=len(e))
+        crowded = (total[recv] > eps) & (both * count[recv] > total[recv])
         can_split = e.area > prob.min_area
-        split_src, split_recv = choose_splits(error, eps, e.area[links.recv], e.area[links.src],
-                                              can_split[links.recv], can_split[links.src])
+        split_src, split_recv = choose_splits(np.where(crowded, np.inf, both), eps, e.area[recv],
+                                              e.area[src], can_split[recv], can_split[src],
+                                              prefer_source=source_error > error)
         if not (split_src.any() or split_recv.any()):
             break
         if len(e) >= prob.settings.max_elements:
@@ -249,22 +308,24 @@ def _refine(prob: Problem, b_elem: np.ndarray, eps: float) -> tuple[bool, bool]:
             break
         refined = True
         n_before = len(e)
-        e.split(np.concatenate([links.src[split_src], links.recv[split_recv]]))
+        e.split(np.concatenate([src[split_src], recv[split_recv]]))
         # children inherit their parent's radiosity until the next solve
-        parent_of_new = e.parent[n_before:]
-        b_elem = np.concatenate([b_elem, b_elem[parent_of_new]])
+        b_elem = np.concatenate([b_elem, b_elem[e.parent[n_before:]]])
+        spread = np.concatenate([spread, 0.5 * spread[e.parent[n_before:]]])
         prob.update_direct(np.arange(n_before, len(e)))
 
-        owner, child = e.children_pairs(links.src[split_src])
-        new_recv = links.recv[split_src][owner]
+        owner, child = e.children_pairs(src[split_src])
+        new_recv = np.concatenate([recv[split_src][owner], np.zeros(0, np.int32)])
         new_src = child
-        owner, child = e.children_pairs(links.recv[split_recv])
+        owner, child = e.children_pairs(recv[split_recv])
         new_recv = np.concatenate([new_recv, child])
-        new_src = np.concatenate([new_src, links.src[split_recv][owner]])
+        new_src = np.concatenate([new_src, src[split_recv][owner]])
         ok = prob.facing_pairs(new_recv, new_src)
-        new_recv, new_src = new_recv[ok], new_src[ok]
-        geo = prob.geometry()
-        new_links = prob.evaluate(new_recv, new_src, geo)
-        prob.links = links.select(~(split_src | split_recv)).extend(new_links)
+        new_links = prob.evaluate(new_recv[ok], new_src[ok], prob.geometry())
+        keep = np.ones(len(links), bool)
+        keep[fresh[split_src | split_recv]] = False
+        kept = links.select(keep)
+        checked = len(kept)
+        prob.links = kept.extend(new_links)
     prob.b_elem_cache = b_elem
     return refined, capped

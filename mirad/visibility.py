@@ -138,6 +138,7 @@ class LinkWave:
     ff_max: np.ndarray
     vis: np.ndarray
     ff_std: np.ndarray
+    ff_range: np.ndarray
     rays: int
 
 
@@ -151,18 +152,16 @@ def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *
     samples : receiver points (and shadow rays) per link
     """
     m = len(recv)
-    out = [np.zeros(m, np.float64) for _ in range(4)]
+    out = [np.zeros(m, np.float64) for _ in range(5)]
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, m, per_launch):
         stop = min(m, start + per_launch)
         res = _link_kernel(mi_scene, geo, recv[start:stop], src[start:stop], samples, seed)
-        for o, r in zip(out, res[:4]):
+        for o, r in zip(out, res[:5]):
             o[start:stop] = r
-        rays += res[4]
-    ff, ff_max, vis, ff_std = out
-    return LinkWave(ff.astype(np.float32), ff_max.astype(np.float32), vis.astype(np.float32),
-                    ff_std.astype(np.float32), rays)
+        rays += res[5]
+    return LinkWave(*(o.astype(np.float32) for o in out), rays)
 
 
 def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
@@ -189,6 +188,13 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     # --- unoccluded kernel: Lambert's form factor from x to the whole source triangle ---
     front = dr.dot(sn, x - sv0) > 0
     g = dr.select(front, point_to_triangle_dr(x, rn, sv0, sv1, sv2), 0.0)
+    # the first three lanes also probe the receiver's (slightly inset) corners: random
+    # samples rarely land there, yet corners next to other surfaces are where a coarse
+    # link's constant value is most wrong
+    corner = dr.select(k == 0, rv0 * 0.9 + (rv1 + rv2) * 0.05,
+                       dr.select(k == 1, rv1 * 0.9 + (rv0 + rv2) * 0.05, rv2 * 0.9 + (rv0 + rv1) * 0.05))
+    corner = dr.select(k < 3, corner, x)
+    g_corner = dr.select(dr.dot(sn, corner - sv0) > 0, point_to_triangle_dr(corner, rn, sv0, sv1, sv2), 0.0)
 
     # --- one shadow ray per lane, only where the kernel is non-zero ----------------------
     xs, xn = project_to_surface(x, rn, rc, ra, rr)
@@ -214,15 +220,18 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     k_sum = dr.block_sum(kernel, n)
     kv_sum = dr.block_sum(kernel * v, n)
     ff_max = dr.block_reduce(dr.ReduceOp.Max, g, n)
+    g_hi = dr.block_reduce(dr.ReduceOp.Max, dr.maximum(g, g_corner), n)
+    g_lo = dr.block_reduce(dr.ReduceOp.Min, dr.minimum(g, g_corner), n)
     sq = dr.block_sum(gv * gv, n) * inv_n
     gv_mean = dr.block_sum(gv, n) * inv_n
-    dr.eval(g_mean, k_sum, kv_sum, ff_max, sq, gv_mean)
+    dr.eval(g_mean, k_sum, kv_sum, ff_max, sq, gv_mean, g_hi, g_lo)
     ks = k_sum.numpy().astype(np.float64)
     vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 1.0)
     ff_np = g_mean.numpy().astype(np.float64) * vis_np
     gvm = gv_mean.numpy().astype(np.float64)
     var = np.maximum(sq.numpy().astype(np.float64) - gvm * gvm, 0.0)
-    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), count_true(active)
+    ff_range = (g_hi.numpy() - g_lo.numpy()).astype(np.float64)
+    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, count_true(active)
 
 
 # ------------------------------------------------------------------------------------------
