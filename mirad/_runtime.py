@@ -3,14 +3,19 @@
 Dr.Jit's CPU backend loads a system ``libLLVM.so``; versions older than 16 abort
 on some kernels ("Cannot select ... fminimum"). The ``karellen-llvm-core`` wheel
 ships a recent LLVM: when it is installed and the user has not set
-``DRJIT_LIBLLVM_PATH`` themselves, we preload its C++ runtime and point Dr.Jit at
-it *before* ``drjit`` is imported. This module must therefore be imported before
-``mitsuba`` or ``drjit`` anywhere in the package.
+``DRJIT_LIBLLVM_PATH`` themselves, we point Dr.Jit at it *before* ``drjit`` is
+imported. This module must therefore be imported before ``mitsuba`` or ``drjit``
+anywhere in the package.
+
+Measured here (Mitsuba 3.9.1, Dr.Jit 1.5.0, wheel LLVM 23.1): the library loads
+without preloading the wheel's libc++/libc++abi/libunwind, and preloading them
+with RTLD_GLOBAL must be avoided: libc++abi then takes over C++ exception
+handling and every Mitsuba error (a malformed XML file, say) aborts the process
+with "terminating due to uncaught exception" instead of raising in Python.
 """
 
 from __future__ import annotations
 
-import ctypes
 import os
 import sys
 from pathlib import Path
@@ -18,7 +23,6 @@ from pathlib import Path
 from .errors import EnvironmentProblem
 
 MIN_LLVM = (16, 0, 0)
-_RUNTIME_LIBS = ("libunwind.so.1.0", "libc++abi.so.1.0", "libc++.so.1.0")
 
 
 def _bundled_llvm() -> Path | None:
@@ -35,16 +39,8 @@ def _preload_llvm() -> None:
     if os.environ.get("DRJIT_LIBLLVM_PATH") or not sys.platform.startswith("linux"):
         return
     llvm = _bundled_llvm()
-    if llvm is None:
-        return
-    runtime = llvm.parent / "x86_64-unknown-linux-gnu"
-    try:
-        for name in _RUNTIME_LIBS:
-            if (runtime / name).exists():
-                ctypes.CDLL(str(runtime / name), mode=ctypes.RTLD_GLOBAL)
-    except OSError:  # pragma: no cover - broken wheel: fall back to the system LLVM
-        return
-    os.environ["DRJIT_LIBLLVM_PATH"] = str(llvm)
+    if llvm is not None:
+        os.environ["DRJIT_LIBLLVM_PATH"] = str(llvm)
 
 
 _preload_llvm()

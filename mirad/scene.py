@@ -222,19 +222,23 @@ def load_scene(source, *, variant: str | None = None) -> Scene:
     return _ingest(mi_scene, path, variant)
 
 
+_LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user should do)
+    ("parsing of xml file", "fix the XML syntax at the position given"),
+    ("plugin \"", "check the plugin's 'type' name against Mitsuba's plugin list"),
+    ("file not found", "check that every referenced file exists (paths are relative to the scene file)"),
+    ("could not parse", "the referenced file is malformed (NaN or text in a number field); re-export it"),
+    ("must be in the range", "give reflectances between 0 and 1"),
+    ("unreferenced", "remove or use the property Mitsuba names"),
+)
+
+
 def _explain_load_error(where: str, exc: Exception) -> str:
     text = str(exc).strip()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     detail = lines[-1] if lines else type(exc).__name__
     low = text.lower()
-    if "plugin" in low and ("not found" in low or "unknown" in low or "could not" in low):
-        fix = "check the plugin's 'type' name against Mitsuba's plugin list"
-    elif "xml" in low or "parse" in low or "error while parsing" in low:
-        fix = "fix the XML syntax at the position given"
-    elif "file" in low and ("not" in low or "exist" in low or "unable" in low):
-        fix = "check that every referenced file exists (paths are relative to the scene file)"
-    else:
-        fix = "fix the scene so that 'mitsuba' itself can load it"
+    fix = next((f for key, f in _LOAD_FIXES if key in low),
+               "fix the scene so that Mitsuba itself can load it")
     return f"{where}: Mitsuba could not load the scene ({detail}); {fix}"
 
 

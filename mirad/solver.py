@@ -289,17 +289,9 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         error = link_error(prob.settings.oracle, links.select(fresh), rho, b_elem[src])
         # source term: the link carries the source's mean radiosity, off by its spread
         source_error = links.ff[fresh] * rho.max(axis=1) * spread[src]
-        both = error + source_error
-        # receiver test: links that are each fine can still add up to a badly represented
-        # receiver (all four walls' dim tops lighting a ceiling err the same way; a coarse
-        # element by a corner gathers its far field as if it saw a whole hemisphere); then
-        # refine its above-average links too
-        total = np.bincount(recv, weights=both, minlength=len(e))
-        count = np.bincount(recv, minlength=len(e))
-        crowded = (total[recv] > eps) & (both * count[recv] > total[recv])
         can_split = e.area > prob.min_area
-        split_src, split_recv = choose_splits(np.where(crowded, np.inf, both), eps, e.area[recv],
-                                              e.area[src], can_split[recv], can_split[src],
+        split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],
+                                              can_split[recv], can_split[src],
                                               prefer_source=source_error > error)
         if not (split_src.any() or split_recv.any()):
             break
@@ -314,16 +306,24 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         spread = np.concatenate([spread, 0.5 * spread[e.parent[n_before:]]])
         prob.update_direct(np.arange(n_before, len(e)))
 
+        # links whose source was split go to the source's children ...
         owner, child = e.children_pairs(src[split_src])
-        new_recv = np.concatenate([recv[split_src][owner], np.zeros(0, np.int32)])
-        new_src = child
-        owner, child = e.children_pairs(recv[split_recv])
-        new_recv = np.concatenate([new_recv, child])
-        new_src = np.concatenate([new_src, src[split_recv][owner]])
+        new_recv, new_src = recv[split_src][owner], child
+        # ... and every link into a receiver that is no longer a leaf moves to its children:
+        # links stay on receiver leaves, so each leaf gathers its whole (hierarchical) source
+        # cut at its own sample points and its row sum cannot exceed 1
+        keep = np.ones(len(links), bool)
+        keep[fresh[split_src]] = False
+        stale = keep & ~e.is_leaf[links.recv]
+        keep &= ~stale
+        pushed_recv = np.concatenate([links.recv[stale], new_recv])
+        pushed_src = np.concatenate([links.src[stale], new_src])
+        inner = ~e.is_leaf[pushed_recv]
+        owner, child = e.children_pairs(pushed_recv[inner])
+        new_recv = np.concatenate([pushed_recv[~inner], child])
+        new_src = np.concatenate([pushed_src[~inner], pushed_src[inner][owner]])
         ok = prob.facing_pairs(new_recv, new_src)
         new_links = prob.evaluate(new_recv[ok], new_src[ok], prob.geometry())
-        keep = np.ones(len(links), bool)
-        keep[fresh[split_src | split_recv]] = False
         kept = links.select(keep)
         checked = len(kept)
         prob.links = kept.extend(new_links)

@@ -96,6 +96,30 @@ def stratified(k, n: int, key):
     return u, v
 
 
+def _radical_inverse_2(k):
+    """Van der Corput radical inverse in base 2 of a mi.UInt32, as mi.Float in [0, 1)."""
+    k = ((k & 0x55555555) << 1) | ((k >> 1) & 0x55555555)
+    k = ((k & 0x33333333) << 2) | ((k >> 2) & 0x33333333)
+    k = ((k & 0x0F0F0F0F) << 4) | ((k >> 4) & 0x0F0F0F0F)
+    k = ((k & 0x00FF00FF) << 8) | ((k >> 8) & 0x00FF00FF)
+    k = (k << 16) | (k >> 16)
+    return mi.Float(k >> 8) * (1.0 / (1 << 24))
+
+
+def shifted_hammersley(k, n: int, key):
+    """Point k of an n-point Hammersley set in [0,1)^2, shifted by a random offset per key.
+
+    All points sharing a key (one element) get the same Cranley-Patterson shift, so the
+    set keeps its low discrepancy: smooth integrands converge much faster than with
+    jittered strata, and the estimate stays unbiased.
+    """
+    su = to_unit(hash_u32(key ^ 0x68E31DA4))
+    sv = to_unit(hash_u32(key ^ 0xB5297A4D))
+    u = (mi.Float(k) + 0.5) * (1.0 / n) + su
+    v = _radical_inverse_2(k) + sv
+    return u - dr.floor(u), v - dr.floor(v)
+
+
 def triangle_point(v0, v1, v2, u, v):
     """Uniform point on a triangle from (u, v) in [0,1)^2 (square-root warp)."""
     su = dr.sqrt(u)
@@ -179,7 +203,10 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     lane_key = hash_u32(pair_key + k * 0x632BE5AB)
     rv0, rv1, rv2, rn, rc, ra, rr = geo.gather(r)
     sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(s)
-    ur, vr = stratified(k, n, lane_key)
+    # receiver points depend on the receiver only (not the source), so all links of a
+    # receiver share them and its row sum is a mean of point row sums, each <= 1
+    recv_key = hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x7F4A7C15))
+    ur, vr = shifted_hammersley(k, n, recv_key)
     k_src = (k * _coprime_step(n) + 3) % n
     us, vs = stratified(k_src, n, hash_u32(lane_key ^ 0x1B873593))
     x = triangle_point(rv0, rv1, rv2, ur, vr)

@@ -1,0 +1,99 @@
+"""Hierarchical radiosity against closed forms and invariants."""
+
+import numpy as np
+import pytest
+
+import mirad
+from conftest import (CLOSED_FORM_REL, F_PARALLEL, F_PERPENDICULAR, RECIPROCITY_REL, SCENES, area_mean,
+                      closed_box)
+from mirad.settings import make_settings
+from mirad.solver import Problem
+
+
+def _receiver_irradiance(path, **options):
+    scene = mirad.load_scene(path)
+    sol = mirad.solve(scene, **options)
+    mask = sol.triangle_shape == scene.shape_index("receiver")
+    return area_mean(sol.triangle_irradiance[mask], sol.triangle_area[mask])[0], sol
+
+
+@pytest.mark.parametrize("name, exact", [("parallel-squares", F_PARALLEL),
+                                         ("perpendicular-squares", F_PERPENDICULAR)])
+def test_form_factor_closed_forms(name, exact):
+    # emitter exitance E = pi * (1/pi) = 1 W/m^2 and black, so H_receiver = F exactly
+    h, sol = _receiver_irradiance(SCENES / "closed-form" / f"{name}.xml", tolerance=0.02)
+    assert h == pytest.approx(exact, rel=CLOSED_FORM_REL)
+    assert sol.stats["rays"] > 0
+
+
+@pytest.mark.parametrize("rho", [0.5, 0.9])
+def test_white_furnace(rho):
+    sol = mirad.solve(closed_box(rho, 1 / np.pi), tolerance=0.05)
+    b = sol.triangle_radiosity
+    np.testing.assert_allclose(b, 1.0 / (1.0 - rho), rtol=CLOSED_FORM_REL)
+
+
+def test_furnace_near_white_converges_with_default_solver():
+    sol = mirad.solve(closed_box(0.99, 1 / np.pi), tolerance=0.05)
+    np.testing.assert_allclose(sol.triangle_radiosity, 100.0, rtol=CLOSED_FORM_REL)
+    assert sol.stats["solver_iterations"] < 500
+
+
+def test_row_sums_and_reciprocity_of_link_transfers():
+    scene = mirad.load_scene(closed_box(0.5, 1 / np.pi))
+    prob = Problem(scene, make_settings())
+    recv, src = prob.initial_pairs()
+    links = prob.evaluate(recv, src, prob.geometry())
+    assert np.all(links.ff <= 1.0)
+    row = np.bincount(links.recv, weights=links.ff.astype(float), minlength=len(prob.patch_normal))
+    assert row.max() <= 1 + 1e-6
+    assert row.min() > 0.97  # closed: each patch sees the whole hemisphere
+    # reciprocity A_i F_ij = A_j F_ji, face against face (unoccluded)
+    area = prob.elements.area
+    face = scene.tri_shape[scene.patch_tri]
+    n_faces = len(scene.shape_ids)
+    transfer = np.zeros((n_faces, n_faces))
+    np.add.at(transfer, (face[links.recv], face[links.src]), area[links.recv] * links.ff)
+    np.testing.assert_allclose(transfer, transfer.T, rtol=RECIPROCITY_REL)
+
+
+def test_energy_balance_in_a_closed_scene():
+    box = closed_box(0.6, 0.0)
+    box["floor"]["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": 1 / np.pi}}
+    scene = mirad.load_scene(box)
+    sol = mirad.solve(scene, tolerance=0.05)
+    area = sol.triangle_area
+    rho = scene.tri_rho[:, 0]
+    absorbed = (area * (1 - rho) * sol.triangle_irradiance[:, 0]).sum()
+    emitted = (area * scene.tri_emission[:, 0]).sum()
+    assert absorbed == pytest.approx(emitted, rel=0.01)
+
+
+def test_same_seed_gives_bitwise_identical_solution(cornell):
+    a = mirad.solve(cornell, tolerance=0.1, seed=3)
+    b = mirad.solve(cornell, tolerance=0.1, seed=3)
+    assert np.array_equal(a.triangle_radiosity, b.triangle_radiosity)
+    c = mirad.solve(cornell, tolerance=0.1, seed=4)
+    assert not np.array_equal(a.triangle_radiosity, c.triangle_radiosity)
+
+
+@pytest.mark.parametrize("solver", ["jacobi", "gauss-seidel"])
+def test_solvers_agree(solver):
+    ref = mirad.solve(closed_box(0.7, 1 / np.pi), tolerance=0.1)
+    other = mirad.solve(closed_box(0.7, 1 / np.pi), tolerance=0.1, solver=solver)
+    np.testing.assert_allclose(other.triangle_radiosity, ref.triangle_radiosity, rtol=1e-4)
+
+
+def test_cornell_box_outputs_have_contract_shapes(cornell):
+    sol = mirad.solve(cornell, tolerance=0.1)
+    t = cornell.triangle_count
+    assert sol.shape_ids == cornell.shape_ids
+    assert sol.triangle_radiosity.shape == (t, 3)
+    assert sol.triangle_area.shape == (t,) and sol.triangle_shape.shape == (t,)
+    assert sol.vertex_radiosity.shape == (len(cornell.vertices), 3)
+    light = sol.shape_radiosity("light")
+    np.testing.assert_allclose(light, cornell.tri_emission[cornell.tri_shape == 0].mean(0), rtol=0.05)
+    for key in ("elements", "links", "rays", "seconds", "estimated_error", "features", "variant"):
+        assert key in sol.stats
+    assert set(sol.stats["seconds"]) >= {"total", "refine", "visibility", "solve"}
+    assert np.all(sol.triangle_radiosity >= 0)
