@@ -226,6 +226,7 @@ _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user sh
     ("parsing of xml file", "fix the XML syntax at the position given"),
     ("plugin \"", "check the plugin's 'type' name against Mitsuba's plugin list"),
     ("file not found", "check that every referenced file exists (paths are relative to the scene file)"),
+    ("invalid vertex", "the mesh has NaN or Inf vertex positions; repair or re-export it"),
     ("could not parse", "the referenced file is malformed (NaN or text in a number field); re-export it"),
     ("must be in the range", "give reflectances between 0 and 1"),
     ("unreferenced", "remove or use the property Mitsuba names"),

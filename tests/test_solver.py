@@ -21,7 +21,7 @@ def _receiver_irradiance(path, **options):
                                          ("perpendicular-squares", F_PERPENDICULAR)])
 def test_form_factor_closed_forms(name, exact):
     # emitter exitance E = pi * (1/pi) = 1 W/m^2 and black, so H_receiver = F exactly
-    h, sol = _receiver_irradiance(SCENES / "closed-form" / f"{name}.xml", tolerance=0.02)
+    h, sol = _receiver_irradiance(SCENES / "closed-form" / f"{name}.xml", tolerance=0.01)
     assert h == pytest.approx(exact, rel=CLOSED_FORM_REL)
     assert sol.stats["rays"] > 0
 
@@ -41,7 +41,8 @@ def test_furnace_near_white_converges_with_default_solver():
 
 def test_row_sums_and_reciprocity_of_link_transfers():
     scene = mirad.load_scene(closed_box(0.5, 1 / np.pi))
-    prob = Problem(scene, make_settings())
+    # 64 points per link: patch-level links between whole faces are the coarsest case
+    prob = Problem(scene, make_settings(samples_per_link=64))
     recv, src = prob.initial_pairs()
     links = prob.evaluate(recv, src, prob.geometry())
     assert np.all(links.ff <= 1.0)
@@ -61,7 +62,7 @@ def test_energy_balance_in_a_closed_scene():
     box = closed_box(0.6, 0.0)
     box["floor"]["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": 1 / np.pi}}
     scene = mirad.load_scene(box)
-    sol = mirad.solve(scene, tolerance=0.05)
+    sol = mirad.solve(scene, tolerance=0.02)
     area = sol.triangle_area
     rho = scene.tri_rho[:, 0]
     absorbed = (area * (1 - rho) * sol.triangle_irradiance[:, 0]).sum()
