@@ -127,6 +127,14 @@ class Problem:
         self.timing["direct"] += time.perf_counter() - t
 
     # --- the linear system ------------------------------------------------------------------
+    def solve(self, system: LeafSystem, x0: np.ndarray):
+        """Solve the leaf system from x0 (timed); returns (B (L, C), iterations, residual)."""
+        t = time.perf_counter()
+        out = solve_system(system, x0, method=self.settings.solver, tol=self.settings.solver_tolerance,
+                           max_iterations=self.settings.max_iterations)
+        self.timing["solve"] += time.perf_counter() - t
+        return out
+
     def system(self, leaves: np.ndarray) -> LeafSystem:
         e = self.elements
         push = e.ancestor_matrix(leaves)
@@ -155,11 +163,7 @@ def solve_problem(scene: Scene, settings: Settings):
     prob.update_direct(np.arange(len(prob.elements)))
     leaves = prob.elements.leaves
     system = prob.system(leaves)
-    t = time.perf_counter()
-    b_leaf, iterations, residual = solve_system(system, system.emission.copy(), method=settings.solver,
-                                                tol=settings.solver_tolerance,
-                                                max_iterations=settings.max_iterations)
-    prob.timing["solve"] += time.perf_counter() - t
+    b_leaf, iterations, residual = prob.solve(system, system.emission.copy())
     total_iterations = iterations
     bar.update(1)
 
@@ -179,12 +183,7 @@ def solve_problem(scene: Scene, settings: Settings):
         if refined:
             leaves = prob.elements.leaves
             system = prob.system(leaves)
-            x0 = (prob.b_elem_cache)[leaves]
-            t = time.perf_counter()
-            b_leaf, iterations, residual = solve_system(system, x0, method=settings.solver,
-                                                        tol=settings.solver_tolerance,
-                                                        max_iterations=settings.max_iterations)
-            prob.timing["solve"] += time.perf_counter() - t
+            b_leaf, iterations, residual = prob.solve(system, prob.b_elem_cache[leaves])
             total_iterations += iterations
         bar.update(1)
         bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
@@ -197,11 +196,7 @@ def solve_problem(scene: Scene, settings: Settings):
     # decouples selection from estimation.
     prob.links = prob.evaluate(prob.links.recv, prob.links.src, prob.geometry(), stream=1)
     system = prob.system(leaves)
-    t = time.perf_counter()
-    b_leaf, iterations, residual = solve_system(system, b_leaf, method=settings.solver,
-                                                tol=settings.solver_tolerance,
-                                                max_iterations=settings.max_iterations)
-    prob.timing["solve"] += time.perf_counter() - t
+    b_leaf, iterations, residual = prob.solve(system, b_leaf)
     total_iterations += iterations
     bar.close()
     if capped:
