@@ -98,3 +98,17 @@ def test_cornell_box_outputs_have_contract_shapes(cornell):
         assert key in sol.stats
     assert set(sol.stats["seconds"]) >= {"total", "refine", "visibility", "solve"}
     assert np.all(sol.triangle_radiosity >= 0)
+
+
+def test_point_light_direct_pass_follows_inverse_square_law():
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    scene = {"type": "scene",
+             "floor": {"type": "rectangle", "id": "floor", "to_world": T().scale(0.01)},
+             "bulb": {"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": 4.0}}}
+    sol = mirad.solve(scene, tolerance=0.05)
+    assert sol.stats["features"]["direct_light_pass"]
+    np.testing.assert_allclose(sol.triangle_irradiance, 4.0 / 2**2, rtol=1e-3)
+    h = sol.irradiance_at([[0, 0, 0], [1, 0, 0]], [[0, 0, 1], [0, 0, 1]])
+    np.testing.assert_allclose(h[:, 0], [1.0, 4.0 * 2 / 5**1.5], rtol=1e-3)  # I cos / r^2
