@@ -241,24 +241,27 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     # F = mean_k G(x_k) * V_K, with V_K the kernel-weighted visible fraction of the sample
     # pairs: sum K(x_k, y_k) v_k / sum K(x_k, y_k). Weighting the rays by the point-to-point
     # kernel keeps grazing (nearly irrelevant) blocked rays from darkening the link.
-    inv_n = 1.0 / n
     kernel = dr.select(active, dr.dot(d, rn) * -dr.dot(d, sn) / dr.square(dr.square(dist)), 0.0)
-    g_mean = dr.block_sum(g, n) * inv_n
-    k_sum = dr.block_sum(kernel, n)
-    kv_sum = dr.block_sum(kernel * v, n)
+    lanes = [g, kernel, kernel * v, gv, gv * gv, dr.maximum(g, g_corner), dr.minimum(g, g_corner),
+             dr.select(active, 1.0, 0.0)]
+    # One kernel computes every per-lane quantity; the block reductions then read stored
+    # arrays. (Reducing unevaluated expressions would re-run the whole wave, shadow rays
+    # included, once per reduction.)
+    dr.eval(*lanes)
+    g_sum, k_sum, kv_sum, gv_sum, sq_sum = (dr.block_sum(x, n) for x in lanes[:5])
     ff_max = dr.block_reduce(dr.ReduceOp.Max, g, n)
-    g_hi = dr.block_reduce(dr.ReduceOp.Max, dr.maximum(g, g_corner), n)
-    g_lo = dr.block_reduce(dr.ReduceOp.Min, dr.minimum(g, g_corner), n)
-    sq = dr.block_sum(gv * gv, n) * inv_n
-    gv_mean = dr.block_sum(gv, n) * inv_n
-    dr.eval(g_mean, k_sum, kv_sum, ff_max, sq, gv_mean, g_hi, g_lo)
+    g_hi = dr.block_reduce(dr.ReduceOp.Max, lanes[5], n)
+    g_lo = dr.block_reduce(dr.ReduceOp.Min, lanes[6], n)
+    traced = dr.sum(lanes[7])
+    dr.eval(g_sum, k_sum, kv_sum, gv_sum, sq_sum, ff_max, g_hi, g_lo, traced)
+    inv_n = 1.0 / n
     ks = k_sum.numpy().astype(np.float64)
     vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 1.0)
-    ff_np = g_mean.numpy().astype(np.float64) * vis_np
-    gvm = gv_mean.numpy().astype(np.float64)
-    var = np.maximum(sq.numpy().astype(np.float64) - gvm * gvm, 0.0)
+    ff_np = g_sum.numpy().astype(np.float64) * inv_n * vis_np
+    gvm = gv_sum.numpy().astype(np.float64) * inv_n
+    var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - gvm * gvm, 0.0)
     ff_range = (g_hi.numpy() - g_lo.numpy()).astype(np.float64)
-    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, count_true(active)
+    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, int(round(float(traced[0])))
 
 
 # ------------------------------------------------------------------------------------------
