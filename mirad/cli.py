@@ -1,4 +1,4 @@
-"""Command line: ``mirad solve | info``. Parses arguments and calls the Python API only."""
+"""Command line: ``mirad solve | info | validate``. Parses arguments and calls the Python API only."""
 
 from __future__ import annotations
 
@@ -27,6 +27,24 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
 
     sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
+
+    val = sub.add_parser("validate", parents=[common],
+                         help="error against Mitsuba path tracing: speed-vs-error table, plot and images")
+    val.add_argument("-o", "--output", default="validation-out",
+                     help="folder for NAME.md, NAME-speed-error.png, NAME-images.png (default validation-out)")
+    val.add_argument("--tolerances", default="0.2,0.1,0.05,0.03,0.02,0.01",
+                     help="comma-separated mirad tolerances (default 0.2,0.1,0.05,0.03,0.02,0.01)")
+    val.add_argument("--pt-samples", default="16,64,256,1024,4096",
+                     help="comma-separated path-tracer samples per triangle (default 16,64,256,1024,4096)")
+    val.add_argument("--reference-samples", type=int, default=16384,
+                     help="reference samples per triangle (default 16384)")
+    val.add_argument("--image-spp", type=int, default=64, help="path-traced image samples per pixel (default 64)")
+    val.add_argument("--no-images", action="store_true", help="skip the image comparison")
+    val.add_argument("--max-seconds", type=float, default=None, help="time budget of each sweep, seconds")
+    val.add_argument("--name", default=None, help="file stem of the outputs (default: the scene's folder name)")
+    val.add_argument("--cache", default=".mirad-cache", help="reference cache folder (default .mirad-cache)")
+    val.add_argument("--no-cache", action="store_true", help="always recompute the reference")
+    val.add_argument("--seed", type=int, default=0, help="mirad's random seed (default 0)")
     return parser
 
 
@@ -70,6 +88,28 @@ def _info(args) -> int:
     return 0
 
 
+def _numbers(text: str, option: str, kind) -> list:
+    from mirad.errors import SettingsError
+
+    try:
+        return [kind(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise SettingsError(f"{option} {text!r}: give comma-separated numbers, e.g. 0.1,0.03") from None
+
+
+def _validate(args) -> int:
+    import mirad
+    from mirad.validate import validate
+
+    scene = mirad.load_scene(args.scene, variant=args.variant)
+    validate(scene, tolerances=_numbers(args.tolerances, "--tolerances", float),
+             pt_samples=_numbers(args.pt_samples, "--pt-samples", int),
+             reference_samples=args.reference_samples, images=not args.no_images, image_spp=args.image_spp,
+             output_dir=args.output, name=args.name, cache_dir=None if args.no_cache else args.cache,
+             seed=args.seed, max_seconds=args.max_seconds, quiet=args.quiet)
+    return 0
+
+
 def _check_output(path: str, suffixes: tuple) -> None:
     from mirad.errors import OutputError
 
@@ -90,7 +130,7 @@ def main(argv=None) -> int:
         print(f"mirad: error: cannot import mirad ({exc})", file=sys.stderr)
         return 2
     try:
-        return {"solve": _solve, "info": _info}[args.command](args)
+        return {"solve": _solve, "info": _info, "validate": _validate}[args.command](args)
     except MiradError as exc:
         print(f"mirad: error: {exc}", file=sys.stderr)
         return 2

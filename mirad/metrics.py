@@ -17,7 +17,7 @@ solver error. ``rms_corrected`` removes the floor in quadrature (errors and nois
 Reductions are in float64. Data first, options keyword-only.
 
 >>> import numpy as np
->>> relative_l1(np.array([[1.1], [0.9]]), np.array([[1.0], [1.0]]), area=np.array([1.0, 1.0]))
+>>> round(relative_l1(np.array([[1.1], [0.9]]), np.array([[1.0], [1.0]]), area=np.array([1.0, 1.0])), 12)
 0.1
 """
 

@@ -1,0 +1,496 @@
+"""Speed against error: mirad's tolerance sweep next to Mitsuba path tracing, on one scene.
+
+``validate(scene)`` measures, on the same machine and against the same high-sample path-traced
+reference (``mirad.reference``):
+
+- mirad at each tolerance: wall-clock seconds of ``mirad.solve`` and the per-triangle errors;
+- the path tracer used as a per-triangle estimator in its own right at several sample counts
+  (``triangle_reference`` with an independent seed): seconds and the same errors;
+- the ratio of times at equal area-weighted relative L1 error (1 % and 2 % by default), each
+  curve interpolated in log-log; the path tracer's curve may be extrapolated along err ~ t^-1/2
+  (its known rate) when its sweep stops short, and the report says so;
+- images: mirad's render, the path-traced image and a false-colour relative difference.
+
+It writes ``NAME.md`` (tables), ``NAME-speed-error.png`` (error against seconds, log-log, both
+curves) and ``NAME-images.png`` into the output folder, each atomically. Every error is reported
+with the reference's own noise floor (``mirad.metrics``).
+
+>>> result = validate("scenes/cornell-box/scene.xml", output_dir="out")    # doctest: +SKIP
+>>> result.ratios[0.01]                                                    # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import io
+import math
+import os
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import _runtime  # noqa: F401
+from .errors import OutputError, SettingsError
+from .metrics import compare, image_noise_floor, image_relative_mse, shape_errors
+from .reference import (DEFAULT_CACHE, cached_image, cached_reference, camera_rays, triangle_reference)
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+__all__ = ["validate", "ValidationResult", "time_at_error", "DEFAULT_TOLERANCES", "DEFAULT_PT_SAMPLES"]
+
+DEFAULT_TOLERANCES = (0.2, 0.1, 0.05, 0.03, 0.02, 0.01)
+DEFAULT_PT_SAMPLES = (16, 64, 256, 1024, 4096)
+DEFAULT_TARGETS = (0.01, 0.02)
+
+
+@dataclass
+class ValidationResult:
+    """Everything ``validate`` measured; ``markdown`` is the report text written to NAME.md."""
+
+    name: str
+    scene_source: str | None
+    triangles: int
+    fingerprint: str
+    reference: dict
+    mirad: list
+    path_tracer: list
+    ratios: dict
+    crossings: dict
+    shapes: list
+    image: dict
+    files: dict = field(default_factory=dict)
+    markdown: str = ""
+    notes: list = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------------------
+# Interpolation of the speed-error curves
+# ------------------------------------------------------------------------------------------
+
+def time_at_error(seconds, errors, target: float, *, extrapolate_slope: float | None = None):
+    """Seconds at which a curve first reaches ``target`` error, interpolated in log-log.
+
+    Points are taken in order of increasing time. Returns (seconds or None, how) with how one of
+    "at most" (the quickest point is already at or below the target: an upper bound),
+    "interpolated", "extrapolated" (beyond the last point along err ~ t^slope; only when
+    ``extrapolate_slope`` is given) or "not reached".
+    """
+    order = np.argsort(np.asarray(seconds, dtype=np.float64))
+    t = np.asarray(seconds, dtype=np.float64)[order]
+    e = np.asarray(errors, dtype=np.float64)[order]
+    if len(t) == 0:
+        return None, "not reached"
+    if e[0] <= target:
+        return float(t[0]), "at most"
+    for k in range(1, len(t)):
+        if e[k] <= target:
+            if e[k] == e[k - 1] or t[k - 1] <= 0:
+                return float(t[k]), "at most"
+            lt = np.interp(np.log(target), [np.log(e[k]), np.log(e[k - 1])], [np.log(t[k]), np.log(t[k - 1])])
+            return float(np.exp(lt)), "interpolated"
+    if extrapolate_slope is not None and e[-1] > 0 and t[-1] > 0:
+        return float(t[-1] * (target / e[-1]) ** (1.0 / extrapolate_slope)), "extrapolated"
+    return None, "not reached"
+
+
+# ------------------------------------------------------------------------------------------
+# Images
+# ------------------------------------------------------------------------------------------
+
+def _flat_image(scene, sol, *, spp: int, seed: int) -> np.ndarray:
+    """Minimal stand-in for ``mirad.render``: radiance B/pi of the triangle each camera ray hits.
+
+    Flat per input triangle (front or back side by the side hit); the same jittered camera rays
+    as ``reference_image``; rays that miss give 0.
+    """
+    film = scene.mi_scene.sensors()[0].film()
+    width, height = (int(x) for x in film.crop_size())
+    shapes = list(scene.mi_scene.shapes())
+    reg = np.array([int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes])
+    lut = np.full(reg.max() + 1, -1, np.int64)
+    lut[reg] = np.arange(len(shapes))
+    counts = np.bincount(scene.tri_shape, minlength=len(shapes))
+    offset = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    direct = np.array([s.is_mesh() and int(s.face_count()) == int(c) and scene.dropped_triangles == 0
+                       for s, c in zip(shapes, counts)])
+    front, back = sol.triangle_radiosity, sol.back_radiosity
+    area = scene.tri_area
+    shape_front = np.stack([np.bincount(scene.tri_shape, weights=area * front[:, c], minlength=len(shapes))
+                            for c in range(3)], 1) / np.maximum(np.bincount(scene.tri_shape, weights=area,
+                                                                            minlength=len(shapes)), 1e-300)[:, None]
+    pixels = width * height
+    total = np.zeros((pixels, 3))
+    for pixel, ray, _ in camera_rays(scene, spp=spp, seed=seed):
+        si = scene.mi_scene.ray_intersect(mi.Ray3f(ray))
+        valid = np.asarray(si.is_valid().numpy(), bool)
+        sid = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape).numpy(), np.int64)
+        prim = np.asarray(si.prim_index.numpy(), np.int64)
+        facing = np.asarray(dr.dot(ray.d, si.n).numpy()) < 0
+        shape = np.where(valid, lut[np.clip(sid, 0, len(lut) - 1)], -1)
+        ok = valid & (shape >= 0)
+        value = np.zeros((len(pixel), 3))
+        exact = ok & direct[np.maximum(shape, 0)]
+        tri = np.where(exact, offset[np.maximum(shape, 0)] + prim, 0)
+        tri = np.clip(tri, 0, scene.triangle_count - 1)
+        value[exact] = np.where(facing[exact, None], front[tri[exact]], back[tri[exact]])
+        approx = ok & ~exact
+        value[approx] = shape_front[shape[approx]]
+        for c in range(3):
+            total[:, c] += np.bincount(pixel, weights=value[:, c], minlength=pixels)
+    return (total / spp / np.pi).reshape(height, width, 3)
+
+
+def _tonemap(image: np.ndarray, scale: float) -> np.ndarray:
+    x = np.clip(np.asarray(image) / (scale if scale > 0 else 1.0), 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+# ------------------------------------------------------------------------------------------
+# Validation
+# ------------------------------------------------------------------------------------------
+
+def _check_list(name: str, values, kind) -> tuple:
+    try:
+        out = tuple(kind(v) for v in values)
+    except (TypeError, ValueError):
+        raise SettingsError(f"{name}={values!r}: give a list of numbers") from None
+    if not out or any(v <= 0 or not math.isfinite(v) for v in out):
+        raise SettingsError(f"{name}={values!r}: give one or more positive numbers")
+    return out
+
+
+def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMPLES,
+             reference_samples: int = 16384, reference_seed: int = 1, targets=DEFAULT_TARGETS,
+             images: bool = True, image_spp: int = 64, render_spp: int = 4, output_dir="validation-out",
+             name: str | None = None, cache_dir=DEFAULT_CACHE, seed: int = 0, max_seconds: float | None = None,
+             quiet: bool = False, **solve_options) -> ValidationResult:
+    """Sweep mirad's tolerance and the path tracer's samples per triangle; write table, plot, images.
+
+    Parameters
+    ----------
+    scene : XML path, Mitsuba dict, mi.Scene or mirad.Scene
+    tolerances : mirad tolerances to solve at (coarse to fine)
+    pt_samples : samples per triangle of the path tracer used as an estimator
+    reference_samples : samples per triangle of the reference (independent seed)
+    reference_seed : seed of the reference (the path-tracer sweep uses other seeds)
+    targets : errors (area-weighted relative L1) at which to report the time ratio
+    images : also compare images (needs a sensor that sees the scene)
+    image_spp : samples per pixel of the path-traced image; render_spp those of mirad's image
+    output_dir : folder for NAME.md, NAME-speed-error.png, NAME-images.png (created if missing)
+    name : file stem (default: the scene file's folder name, else "scene")
+    cache_dir : reference cache folder (None: no cache)
+    seed : mirad's seed
+    max_seconds : stop a sweep once its next step would likely exceed this many seconds in all
+    quiet : print nothing
+    **solve_options : passed to ``mirad.solve``
+
+    Returns
+    -------
+    ValidationResult
+    """
+    import mirad
+
+    tolerances = _check_list("tolerances", tolerances, float)
+    pt_samples = _check_list("pt_samples", pt_samples, int)
+    targets = _check_list("targets", targets, float)
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
+    loaded = mirad.load_scene(scene)
+    if name is None:
+        source = Path(loaded.source) if loaded.source else None
+        name = "scene" if source is None else (source.parent.name if source.stem == "scene" else source.stem)
+    out = Path(output_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder '{out}' ({exc.strerror}); choose another --output") from None
+    if not os.access(out, os.W_OK):
+        raise OutputError(f"output folder '{out}' is not writable; choose another --output")
+    if images:
+        from .reference import _sensor
+        _sensor(loaded)  # no sensor: fail before the long work
+    area = np.asarray(loaded.tri_area, dtype=np.float64)
+    say(f"validate {name}: {loaded.triangle_count} triangles, fingerprint {loaded.fingerprint}")
+
+    # --- warm-up (JIT compilation is not part of either timing) --------------------------------
+    mirad.solve(loaded, tolerance=max(tolerances), seed=seed, **solve_options)
+    triangle_reference(loaded, samples_per_triangle=2, seed=999, triangles=np.arange(min(64, loaded.triangle_count)))
+
+    # --- reference -----------------------------------------------------------------------------
+    ref = cached_reference(loaded, cache_dir=cache_dir, samples_per_triangle=reference_samples,
+                           seed=reference_seed)
+    floor = compare(ref.radiosity, ref.radiosity, ref.stderr, area=area)["noise"]
+    say(f"reference: {reference_samples} samples/triangle, {ref.seconds:.1f} s"
+        f"{' (from cache)' if ref.from_cache else ''}; noise floor L1 {floor['l1']:.4%}, RMS {floor['rms']:.4%}")
+
+    # --- mirad sweep ------------------------------------------------------------------------------
+    rows, spent, last_sol = [], 0.0, None
+    for tol in sorted(tolerances, reverse=True):
+        if max_seconds is not None and rows and spent + 4 * rows[-1]["seconds"] > max_seconds:
+            say(f"mirad: stopping before tolerance {tol:g} (time budget {max_seconds:g} s)")
+            break
+        t0 = time.perf_counter()
+        sol = mirad.solve(loaded, tolerance=tol, seed=seed, **solve_options)
+        dt = time.perf_counter() - t0
+        spent += dt
+        err = compare(sol.triangle_radiosity, ref.radiosity, ref.stderr, area=area)
+        st = sol.stats
+        rows.append({"tolerance": tol, "seconds": dt, "phases": dict(st.get("seconds", {})), **err,
+                     "elements": st.get("elements"), "leaves": st.get("leaves"), "links": st.get("links"),
+                     "rays": st.get("rays"), "estimated_error": st.get("estimated_error")})
+        last_sol = sol
+        say(f"mirad tolerance {tol:g}: {dt:.2f} s, L1 {err['l1']:.4%}, RMS {err['rms']:.4%}")
+
+    # --- path tracer as an estimator -------------------------------------------------------------
+    pt_rows, spent = [], 0.0
+    for k, n in enumerate(sorted(pt_samples)):
+        if max_seconds is not None and pt_rows and spent + 4 * pt_rows[-1]["seconds"] > max_seconds:
+            say(f"path tracer: stopping before {n} samples/triangle (time budget {max_seconds:g} s)")
+            break
+        est = triangle_reference(loaded, samples_per_triangle=n, seed=reference_seed + 1000 + k)
+        spent += est.seconds
+        err = compare(est.radiosity, ref.radiosity, ref.stderr, area=area)
+        pt_rows.append({"samples": n, "seconds": est.seconds, **err})
+        say(f"path tracer {n} samples/triangle: {est.seconds:.2f} s, L1 {err['l1']:.4%}")
+
+    # --- time ratio at equal error ---------------------------------------------------------------
+    ratios, crossings = {}, {}
+    for target in targets:
+        tm, how_m = time_at_error([r["seconds"] for r in rows], [r["l1"] for r in rows], target)
+        if target < 2 * floor["l1"]:
+            tp, how_p = None, "below twice the reference noise floor"
+            tp_i, how_i = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target)
+            if tp_i is not None and how_i != "extrapolated":
+                tp, how_p = tp_i, how_i
+        else:
+            tp, how_p = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target,
+                                      extrapolate_slope=-0.5)
+        crossings[target] = {"mirad": (tm, how_m), "path_tracer": (tp, how_p)}
+        ratios[target] = tp / tm if (tm and tp) else None
+        if ratios[target] is not None:
+            say(f"at {target:.0%} L1: mirad {tm:.3g} s ({how_m}), path tracer {tp:.3g} s ({how_p}): "
+                f"mirad is {ratios[target]:.2f}x faster")
+        else:
+            best = min(rows, key=lambda r: r["l1"]) if rows else None
+            why = (f"mirad did not reach it (best {best['l1']:.2%} at {best['seconds']:.2f} s)" if tm is None and best
+                   else f"path tracer: {how_p}")
+            say(f"at {target:.0%} L1: no ratio ({why})")
+
+    shapes = shape_errors(last_sol.triangle_radiosity, ref.radiosity, area=area, shape=loaded.tri_shape,
+                          stderr=ref.stderr, names=loaded.shape_ids) if last_sol is not None else []
+
+    result = ValidationResult(name=name, scene_source=loaded.source, triangles=loaded.triangle_count,
+                              fingerprint=loaded.fingerprint,
+                              reference={"samples_per_triangle": reference_samples, "seed": reference_seed,
+                                         "seconds": ref.seconds, "paths": ref.paths, "noise": floor,
+                                         "from_cache": ref.from_cache, "method": ref.method},
+                              mirad=rows, path_tracer=pt_rows, ratios=ratios, crossings=crossings, shapes=shapes,
+                              image={})
+
+    # --- images --------------------------------------------------------------------------------------
+    from .solution import atomic_write
+
+    if images and last_sol is not None:
+        result.image = _compare_images(loaded, last_sol, result, out, name, image_spp=image_spp,
+                                       render_spp=render_spp, seed=reference_seed, cache_dir=cache_dir)
+        say(f"image: relative MSE {result.image['relmse']:.4g} (reference noise {result.image['noise']:.2g})")
+
+    # --- plot and table ------------------------------------------------------------------------------
+    plot = out / f"{name}-speed-error.png"
+    png = _plot(result)
+    atomic_write(plot, lambda handle: handle.write(png))
+    result.files["plot"] = plot
+    result.markdown = markdown(result)
+    table = out / f"{name}.md"
+    atomic_write(table, lambda handle: handle.write(result.markdown.encode()))
+    result.files["table"] = table
+    say(f"wrote {table}, {plot}" + (f", {result.files['images']}" if "images" in result.files else ""))
+    return result
+
+
+def _compare_images(scene, sol, result, out: Path, name: str, *, image_spp, render_spp, seed, cache_dir) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import mirad
+    from .solution import atomic_write
+
+    ref = cached_image(scene, cache_dir=cache_dir, spp=image_spp, seed=seed)
+    t0 = time.perf_counter()
+    how = "mirad.render"
+    image = None
+    if hasattr(mirad, "render"):
+        try:
+            image = np.asarray(mirad.render(scene, sol, spp=render_spp), dtype=np.float64)[..., :3]
+        except Exception as exc:  # a renderer under construction must not sink the validation
+            result.notes.append(f"mirad.render failed ({type(exc).__name__}: {exc}); used the flat per-triangle image")
+            image = None
+        if image is not None and image.shape != ref.image.shape:
+            result.notes.append(f"mirad.render returned {image.shape}, expected {ref.image.shape}; "
+                                "used the flat per-triangle image")
+            image = None
+    if image is None:
+        how = "flat per-triangle radiosity (mirad.render not available)"
+        image = _flat_image(scene, sol, spp=render_spp, seed=seed + 17)
+    seconds = time.perf_counter() - t0
+    mask = ref.coverage >= 1.0
+    relmse = image_relative_mse(image, ref.image, mask=mask)
+    noise = image_noise_floor(ref.stderr, ref.image, mask=mask)
+    lum = ref.image.mean(axis=2)
+    scale = float(np.percentile(lum[mask], 99)) if mask.any() else 1.0
+    eps = 1e-2 * max(float(lum[mask].mean()) if mask.any() else 1.0, 1e-300)
+    diff = (image.mean(axis=2) - lum) / (lum + eps)
+    diff = np.where(mask, diff, np.nan)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
+    axes[0].imshow(_tonemap(image, scale))
+    axes[0].set_title(f"mirad ({'render' if how == 'mirad.render' else 'flat per triangle'})")
+    axes[1].imshow(_tonemap(ref.image, scale))
+    axes[1].set_title(f"Mitsuba path tracer, {ref.spp} spp")
+    im = axes[2].imshow(diff, cmap="coolwarm", vmin=-0.5, vmax=0.5)
+    axes[2].set_title(f"(mirad - path) / path; rel. MSE {relmse:.3g}")
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.04)
+    for ax in axes:
+        ax.set_axis_off()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    path = out / f"{name}-images.png"
+    atomic_write(path, lambda handle: handle.write(buf.getvalue()))
+    result.files["images"] = path
+    return {"relmse": relmse, "noise": noise, "spp": ref.spp, "render_spp": render_spp, "how": how,
+            "reference_seconds": ref.seconds, "render_seconds": seconds,
+            "covered_pixels": float(mask.mean())}
+
+
+def _plot(result: ValidationResult) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    if result.mirad:
+        ax.loglog([r["seconds"] for r in result.mirad], [r["l1"] for r in result.mirad], "o-", color="tab:blue",
+                  label="mirad (tolerance sweep)")
+        for r in result.mirad:
+            ax.annotate(f"{r['tolerance']:g}", (r["seconds"], r["l1"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")
+    if result.path_tracer:
+        ax.loglog([r["seconds"] for r in result.path_tracer], [r["l1"] for r in result.path_tracer], "s-",
+                  color="tab:orange", label="Mitsuba path tracer (samples/triangle)")
+        for r in result.path_tracer:
+            ax.annotate(f"{r['samples']}", (r["seconds"], r["l1"]), fontsize=7, xytext=(3, -9),
+                        textcoords="offset points")
+    ax.axhline(result.reference["noise"]["l1"], color="grey", ls=":", label="reference noise floor (L1)")
+    for target in result.ratios:
+        ax.axhline(target, color="lightgrey", lw=0.8, zorder=0)
+    ax.set_xlabel("seconds (wall clock)")
+    ax.set_ylabel("area-weighted relative L1 error per triangle")
+    ax.set_title(f"{result.name}: {result.triangles} triangles")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def machine() -> str:
+    """CPU model, core count, OS (for the report)."""
+    cpu = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{cpu or platform.machine()}, {os.cpu_count()} cores ({platform.system()})"
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{100 * x:.3g} %"
+
+
+def ratio_lines(result: ValidationResult) -> list[str]:
+    """One line per target: the time ratio at equal error, or why there is none."""
+    lines = []
+    for target, ratio in result.ratios.items():
+        (tm, hm), (tp, hp) = result.crossings[target]["mirad"], result.crossings[target]["path_tracer"]
+        if ratio is not None:
+            bound = {(True, False): "≥ ", (False, True): "≤ "}.get((hm == "at most", hp == "at most"), "")
+            if hm == hp == "at most":
+                bound = "~ (both bounds) "
+            lines.append(f"at {_pct(target)} L1: mirad {tm:.3g} s ({hm}), path tracer {tp:.3g} s ({hp}): "
+                         f"**{bound}{ratio:.2f}x**")
+        elif tm is None:
+            best = min(result.mirad, key=lambda r: r["l1"]) if result.mirad else None
+            tail = f"; its best is {_pct(best['l1'])} at {best['seconds']:.2f} s" if best else ""
+            lines.append(f"at {_pct(target)} L1: no ratio, mirad did not reach it{tail}"
+                         + (f" (path tracer {tp:.3g} s, {hp})" if tp else ""))
+        else:
+            lines.append(f"at {_pct(target)} L1: no ratio, path tracer {hp} (mirad {tm:.3g} s, {hm})")
+    return lines
+
+
+def markdown(result: ValidationResult) -> str:
+    """The report of one scene as markdown (tables, ratios, images)."""
+    ref = result.reference
+    noise = ref["noise"]
+    lines = [f"## {result.name}", "",
+             f"- scene: `{result.scene_source or '<scene>'}`, {result.triangles} triangles, fingerprint "
+             f"{result.fingerprint}",
+             f"- measured {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} on {machine()}, variant {mi.variant()}",
+             f"- reference: Mitsuba `path`, method `{ref['method']}`, {ref['samples_per_triangle']} samples/triangle "
+             f"({ref['paths']:,} paths, {ref['seconds']:.1f} s{', cached' if ref['from_cache'] else ''}); its noise "
+             f"floor: L1 {_pct(noise['l1'])}, RMS {_pct(noise['rms'])}, L∞ scale {_pct(noise['linf'])}",
+             "- errors: per input triangle and colour channel, area weighted, relative to the area-weighted mean "
+             "reference radiosity; 'RMS corr.' removes the reference noise in quadrature", "",
+             "### mirad", "",
+             "| tolerance | seconds | refine | visibility | solve | leaves | links | rays | rel. L1 | rel. RMS | "
+             "RMS corr. | rel. L∞ | estimated |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in result.mirad:
+        ph = r["phases"]
+        f = lambda k: f"{ph[k]:.2f}" if isinstance(ph.get(k), (int, float)) else "–"  # noqa: E731
+        est = r["estimated_error"]
+        lines.append(f"| {r['tolerance']:g} | {r['seconds']:.2f} | {f('refine')} | {f('visibility')} | {f('solve')} | "
+                     f"{r['leaves'] or 0:,} | {r['links'] or 0:,} | {r['rays'] or 0:,} | {_pct(r['l1'])} | "
+                     f"{_pct(r['rms'])} | {_pct(r['rms_corrected'])} | {_pct(r['linf'])} | "
+                     f"{_pct(est) if isinstance(est, (int, float)) else '–'} |")
+    lines += ["", "### Mitsuba path tracer as a per-triangle estimator", "",
+              "| samples/triangle | seconds | rel. L1 | rel. RMS | RMS corr. | rel. L∞ |", "|---:|---:|---:|---:|---:|---:|"]
+    for r in result.path_tracer:
+        lines.append(f"| {r['samples']} | {r['seconds']:.2f} | {_pct(r['l1'])} | {_pct(r['rms'])} | "
+                     f"{_pct(r['rms_corrected'])} | {_pct(r['linf'])} |")
+    lines += ["", "### Time ratio at equal error (path tracer seconds / mirad seconds)", ""]
+    lines += [f"- {x}" for x in ratio_lines(result)]
+    lines += ["", f"![speed against error]({result.files.get('plot', Path(result.name + '-speed-error.png')).name})", ""]
+    if result.shapes:
+        finest = result.mirad[-1]["tolerance"]
+        lines += [f"### Per shape (mirad at tolerance {finest:g})", "",
+                  "| shape | triangles | reference B | mirad B | rel. error | reference noise |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for s in result.shapes:
+            lines.append(f"| {s['shape']} | {s['triangles']} | {s['reference']:.4g} | {s['value']:.4g} | "
+                         f"{_pct(s['error'])} | {_pct(s['noise'])} |")
+        lines.append("")
+    if result.image:
+        im = result.image
+        lines += ["### Images", "",
+                  f"mirad image: {im['how']} ({im['render_spp']} spp); path-traced image {im['spp']} spp "
+                  f"({im['reference_seconds']:.1f} s). Relative MSE over fully covered pixels "
+                  f"({100 * im['covered_pixels']:.0f} % of the image): {im['relmse']:.4g}; the reference image's "
+                  f"own noise contributes {im['noise']:.2g}.", "",
+                  f"![mirad, path tracer, relative difference]({result.files['images'].name})", ""]
+    for note in result.notes:
+        lines.append(f"- note: {note}")
+    return "\n".join(lines).rstrip() + "\n"
