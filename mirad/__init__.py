@@ -14,7 +14,7 @@ from .scene import Scene, load_scene
 from .settings import Settings, make_settings
 from .solution import Solution, load_solution
 
-__all__ = ["load_scene", "solve", "load_solution", "Scene", "Solution", "Settings", "MiradError",
+__all__ = ["load_scene", "solve", "render", "load_solution", "Scene", "Solution", "Settings", "MiradError",
            "SceneError", "SettingsError", "EnvironmentProblem", "SolutionMismatch", "OutputError"]
 __version__ = "0.1.0"
 
@@ -31,6 +31,23 @@ def _default_variant() -> None:
 
 
 _default_variant()
+
+
+def _register_plugin() -> None:
+    """Make ``<integrator type="radiosity">`` available in every variant (mirad/integrator.py)."""
+    from .integrator import install
+
+    install()
+
+
+_register_plugin()
+
+
+def render(scene, solution=None, *, spp: int = 4, **options):
+    """Image (H, W, 3) of a radiosity solution from the scene's sensor; see mirad.display.render."""
+    from .display import render as _render
+
+    return _render(scene, solution, spp=spp, **options)
 
 
 def solve(scene, *, tolerance: float = 0.01, samples_per_link: int = 16, seed: int = 0,

@@ -1,4 +1,4 @@
-"""Command line: ``mirad solve | info | validate``. Parses arguments and calls the Python API only."""
+"""Command line: ``mirad solve | info | validate | render | export | probe``. Parses arguments and calls the Python API only."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
 
     sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
+    _add_output_commands(sub, common)
 
     val = sub.add_parser("validate", parents=[common],
                          help="error against Mitsuba path tracing: speed-vs-error table, plot and images")
@@ -110,6 +111,123 @@ def _validate(args) -> int:
     return 0
 
 
+# --- render, export, probe -------------------------------------------------------------------
+
+def _add_output_commands(sub, common) -> None:
+    solved = argparse.ArgumentParser(add_help=False)
+    solved.add_argument("--solution", default=None,
+                        help="use this saved solution (.npz from 'mirad solve') instead of solving again")
+    solved.add_argument("--tolerance", type=float, default=None, help="target relative error (default 0.01)")
+    solved.add_argument("--samples-per-link", type=int, default=None, help="shadow rays per link (default 16)")
+    solved.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
+
+    render = sub.add_parser("render", parents=[common, solved],
+                            help="image of the solution from the scene's sensor (EXR + PNG)")
+    render.add_argument("-o", "--output", required=True, help="image.exr (linear RGB float); a tonemapped "
+                        "sRGB PNG is written beside it")
+    render.add_argument("--spp", type=int, default=4, help="samples per pixel (default 4)")
+    render.add_argument("--final-gather", action="store_true",
+                        help="one bounce of gathering at each pixel (crisp contact shadows, slower)")
+    render.add_argument("--flat", action="store_true", help="show flat elements instead of smooth shading")
+    render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops (default 0)")
+    render.add_argument("--no-png", action="store_true", help="write the EXR only")
+
+    export = sub.add_parser("export", parents=[common, solved],
+                            help="PLY mesh, per-triangle table, per-shape summary, lightmaps")
+    export.add_argument("-o", "--output", action="append", default=[],
+                        help="by suffix: .ply (mesh, vertex colours and float radiosity), .csv or .npz "
+                             "(per-triangle table with absorbed power); may be repeated")
+    export.add_argument("--shapes", default=None, help="per-shape summary .csv (mean radiosity, absorbed power)")
+    export.add_argument("--lightmaps", default=None,
+                        help="folder for one radiosity lightmap <shape id>.exr per shape with UVs")
+    export.add_argument("--lightmap-res", type=int, default=256, help="lightmap size in texels (default 256)")
+
+    probe = sub.add_parser("probe", parents=[common, solved], help="irradiance at sensor points")
+    probe.add_argument("--points", required=True, help="CSV file with a header and columns x,y,z,nx,ny,nz")
+    probe.add_argument("-o", "--output", required=True,
+                       help="CSV out: x,y,z,nx,ny,nz and irradiance_r,g,b (W/m^2)")
+    probe.add_argument("--rays", type=int, default=16, help="shadow rays per element and point (default 16)")
+
+
+def _solution(args):
+    """The scene and its solution: loaded from --solution (fingerprint checked) or solved now."""
+    import mirad
+    from mirad.errors import SettingsError, SolutionMismatch
+
+    scene = mirad.load_scene(args.scene, variant=args.variant)
+    if args.solution:
+        given = [f"--{n.replace('_', '-')}" for n in ("tolerance", "samples_per_link", "seed")
+                 if getattr(args, n) is not None]
+        if given:
+            raise SettingsError(f"{', '.join(given)} cannot be combined with --solution (the saved "
+                                "solution is used as it is); drop one of them")
+        if not os.path.exists(args.solution):
+            raise SolutionMismatch(f"solution file '{args.solution}' does not exist; write one with "
+                                   "'mirad solve SCENE -o sol.npz'")
+        return scene, mirad.load_solution(args.solution, scene=scene)
+    options = {n: getattr(args, n) for n in ("tolerance", "samples_per_link", "seed") if getattr(args, n) is not None}
+    return scene, mirad.solve(scene, quiet=args.quiet, **options)
+
+
+def _render(args) -> int:
+    from mirad.display import check_spp, render, write_image
+
+    _check_output(args.output, (".exr",))
+    if not args.no_png:
+        _check_output(os.path.splitext(args.output)[0] + ".png", (".png",))
+    check_spp(args.spp)
+    scene, sol = _solution(args)
+    image = render(scene, sol, spp=args.spp, smooth=not args.flat, final_gather=args.final_gather,
+                   seed=args.seed or 0)
+    written = write_image(args.output, image, png=not args.no_png, exposure=args.exposure)
+    if not args.quiet:
+        print(f"wrote {', '.join(map(str, written))} ({image.shape[1]}x{image.shape[0]}, {args.spp} spp)")
+    return 0
+
+
+def _export(args) -> int:
+    from mirad import export
+    from mirad.errors import OutputError
+
+    if not (args.output or args.shapes or args.lightmaps):
+        raise OutputError("nothing to export; give -o FILE (.ply, .csv, .npz), --shapes FILE.csv or --lightmaps DIR")
+    for path in args.output:
+        _check_output(path, (".ply",) + export.TABLE_SUFFIXES)
+    if args.shapes:
+        _check_output(args.shapes, (".csv",))
+    if args.lightmaps and not os.path.isdir(args.lightmaps):
+        raise OutputError(f"lightmap folder '{args.lightmaps}' does not exist; create it first")
+    if args.lightmap_res < 1:
+        raise OutputError(f"--lightmap-res {args.lightmap_res} must be >= 1 (e.g. 256)")
+    scene, sol = _solution(args)
+    written = []
+    for path in args.output:
+        written.append(export.write_ply(sol, path) if path.lower().endswith(".ply") else export.write_table(sol, path))
+    if args.shapes:
+        written.append(export.write_shape_summary(sol, args.shapes))
+    if args.lightmaps:
+        written += export.write_lightmaps(sol, args.lightmaps, resolution=args.lightmap_res)
+    if not args.quiet:
+        print(f"wrote {', '.join(map(str, written))}")
+    return 0
+
+
+def _probe(args) -> int:
+    from mirad.errors import SettingsError
+    from mirad.export import read_points, write_probe_table
+
+    _check_output(args.output, (".csv",))
+    if args.rays < 1:
+        raise SettingsError(f"--rays {args.rays} must be >= 1")
+    points, normals = read_points(args.points)
+    scene, sol = _solution(args)
+    irradiance = sol.irradiance_at(points, normals, rays=args.rays)
+    write_probe_table(args.output, points, normals, irradiance)
+    if not args.quiet:
+        print(f"wrote {args.output} ({len(points)} points)")
+    return 0
+
+
 def _check_output(path: str, suffixes: tuple) -> None:
     from mirad.errors import OutputError
 
@@ -130,7 +248,8 @@ def main(argv=None) -> int:
         print(f"mirad: error: cannot import mirad ({exc})", file=sys.stderr)
         return 2
     try:
-        return {"solve": _solve, "info": _info, "validate": _validate}[args.command](args)
+        return {"solve": _solve, "info": _info, "validate": _validate, "render": _render,
+                "export": _export, "probe": _probe}[args.command](args)
     except MiradError as exc:
         print(f"mirad: error: {exc}", file=sys.stderr)
         return 2

@@ -59,6 +59,7 @@ class Solution:
             "vertices": scene.vertices, "faces": scene.faces,
             "triangle_area": scene.tri_area, "triangle_shape": scene.tri_shape,
             "triangle_rho": scene.tri_rho, "triangle_emission": scene.tri_emission,
+            "back_rho": scene.back_rho,
         }
         if scene.vertex_uv is not None:
             arrays["vertex_uv"] = scene.vertex_uv
@@ -217,16 +218,30 @@ class Solution:
 
     # --- files -----------------------------------------------------------------------------------
     def save(self, path) -> Path:
-        """Write the solution: .npz (everything, reloadable) or .ply (vertex colours). Atomic."""
+        """Write the solution, chosen by suffix; atomic.
+
+        .npz: everything, reloadable with ``mirad.load_solution``; .ply: mesh with vertex colours and
+        float radiosity; .csv: per-triangle table (``mirad.export``); .exr: image from the scene's
+        sensor (``mirad.render``, needs the scene), with a PNG beside it.
+        """
         path = Path(path)
         suffix = path.suffix.lower()
         if suffix == ".npz":
-            writer = self._write_npz
+            atomic_write(path, self._write_npz)
         elif suffix == ".ply":
-            writer = self._write_ply
+            from .export import write_ply
+
+            write_ply(self, path)
+        elif suffix == ".csv":
+            from .export import write_table
+
+            write_table(self, path)
+        elif suffix == ".exr":
+            from .display import render, write_image
+
+            write_image(path, render(self._require_scene(), self))
         else:
-            raise OutputError(f"cannot save a solution as '{path.suffix}' ({path}); use .npz or .ply")
-        atomic_write(path, writer)
+            raise OutputError(f"cannot save a solution as '{path.suffix}' ({path}); use .npz, .ply, .csv or .exr")
         return path
 
     def _write_npz(self, handle) -> None:
@@ -234,16 +249,6 @@ class Solution:
                 "stats": self.stats}
         np.savez_compressed(handle, __meta__=np.frombuffer(json.dumps(meta, default=str).encode(), np.uint8),
                             **self._a)
-
-    def _write_ply(self, handle) -> None:
-        import trimesh
-
-        b = self.vertex_radiosity
-        mesh = trimesh.Trimesh(vertices=self._a["vertices"], faces=self._a["faces"], process=False)
-        mesh.visual.vertex_colors = display_colors(b)
-        for c, name in enumerate("rgb"[: b.shape[1]]):
-            mesh.vertex_attributes[f"radiosity_{name}"] = b[:, c].astype(np.float32)
-        handle.write(trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True))
 
     def summary(self) -> str:
         """One paragraph: elements, links, rays, time, estimated error."""
