@@ -45,6 +45,8 @@ __all__ = ["validate", "ValidationResult", "time_at_error", "DEFAULT_TOLERANCES"
 DEFAULT_TOLERANCES = (0.2, 0.1, 0.05, 0.03, 0.02, 0.01)
 DEFAULT_PT_SAMPLES = (16, 64, 256, 1024, 4096)
 DEFAULT_TARGETS = (0.01, 0.02)
+#: Scenes larger than this are JIT-warmed on the Cornell box rather than by a solve of their own.
+WARM_UP_TRIANGLES = 3000
 
 
 @dataclass
@@ -65,6 +67,8 @@ class ValidationResult:
     files: dict = field(default_factory=dict)
     markdown: str = ""
     notes: list = field(default_factory=list)
+    running: str = ""
+    targets: tuple = DEFAULT_TARGETS
 
 
 # ------------------------------------------------------------------------------------------
@@ -74,14 +78,15 @@ class ValidationResult:
 def time_at_error(seconds, errors, target: float, *, extrapolate_slope: float | None = None):
     """Seconds at which a curve first reaches ``target`` error, interpolated in log-log.
 
-    Points are taken in order of increasing time. Returns (seconds or None, how) with how one of
+    Points are taken in the order given, which is the sweep's order of increasing cost (coarse to
+    fine tolerance, few to many samples): measured seconds of small runs are too noisy on a shared
+    machine to order the points by. Returns (seconds or None, how) with how one of
     "at most" (the quickest point is already at or below the target: an upper bound),
     "interpolated", "extrapolated" (beyond the last point along err ~ t^slope; only when
     ``extrapolate_slope`` is given) or "not reached".
     """
-    order = np.argsort(np.asarray(seconds, dtype=np.float64))
-    t = np.asarray(seconds, dtype=np.float64)[order]
-    e = np.asarray(errors, dtype=np.float64)[order]
+    t = np.asarray(seconds, dtype=np.float64)
+    e = np.asarray(errors, dtype=np.float64)
     if len(t) == 0:
         return None, "not reached"
     if e[0] <= target:
@@ -144,6 +149,18 @@ def _flat_image(scene, sol, *, spp: int, seed: int) -> np.ndarray:
     return (total / spp / np.pi).reshape(height, width, 3)
 
 
+def _check_sensor(scene) -> None:
+    """Raise SceneError when the scene has no sensor or its sensor sees no shape (1 ray per pixel)."""
+    from .errors import SceneError
+
+    for _, ray, _ in camera_rays(scene, spp=1, seed=0):
+        if dr.any(scene.mi_scene.ray_test(mi.Ray3f(ray))):
+            return
+    raise SceneError(f"{scene.source or '<scene>'}: the sensor sees no shape (every camera ray misses the "
+                     "geometry); point the sensor at the scene (check its to_world / lookat) or run without "
+                     "images (--no-images)")
+
+
 def _tonemap(image: np.ndarray, scale: float) -> np.ndarray:
     x = np.clip(np.asarray(image) / (scale if scale > 0 else 1.0), 0, 1)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
@@ -167,7 +184,7 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
              reference_samples: int = 16384, reference_seed: int = 1, targets=DEFAULT_TARGETS,
              images: bool = True, image_spp: int = 64, render_spp: int = 4, output_dir="validation-out",
              name: str | None = None, cache_dir=DEFAULT_CACHE, seed: int = 0, max_seconds: float | None = None,
-             quiet: bool = False, **solve_options) -> ValidationResult:
+             quiet: bool = False, write_table: bool = True, progress=None, **solve_options) -> ValidationResult:
     """Sweep mirad's tolerance and the path tracer's samples per triangle; write table, plot, images.
 
     Parameters
@@ -181,11 +198,13 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
     images : also compare images (needs a sensor that sees the scene)
     image_spp : samples per pixel of the path-traced image; render_spp those of mirad's image
     output_dir : folder for NAME.md, NAME-speed-error.png, NAME-images.png (created if missing)
-    name : file stem (default: the scene file's folder name, else "scene")
+    name : file stem (default: the scene file's folder name, or its stem when not scene.xml)
     cache_dir : reference cache folder (None: no cache)
     seed : mirad's seed
     max_seconds : stop a sweep once its next step would likely exceed this many seconds in all
     quiet : print nothing
+    write_table : write NAME.md (``run_all`` collects the markdown into one report instead)
+    progress : callable(ValidationResult), called after every step with the results so far
     **solve_options : passed to ``mirad.solve``
 
     Returns
@@ -210,28 +229,63 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
     if not os.access(out, os.W_OK):
         raise OutputError(f"output folder '{out}' is not writable; choose another --output")
     if images:
-        from .reference import _sensor
-        _sensor(loaded)  # no sensor: fail before the long work
+        _check_sensor(loaded)  # no sensor, or one that sees nothing: fail before the long work
     area = np.asarray(loaded.tri_area, dtype=np.float64)
     say(f"validate {name}: {loaded.triangle_count} triangles, fingerprint {loaded.fingerprint}")
+    result = ValidationResult(name=name, scene_source=loaded.source, triangles=loaded.triangle_count,
+                              fingerprint=loaded.fingerprint, reference={}, mirad=[], path_tracer=[], ratios={},
+                              crossings={}, shapes=[], image={})
+    result.targets = targets
+    report = progress or (lambda r: None)
 
     # --- warm-up (JIT compilation is not part of either timing) --------------------------------
-    mirad.solve(loaded, tolerance=max(tolerances), seed=seed, **solve_options)
+    # A large scene is warmed up on the Cornell box instead: compiling is then negligible next to
+    # its solve, and its own coarsest solve may take minutes.
+    if loaded.triangle_count <= WARM_UP_TRIANGLES:
+        mirad.solve(loaded, tolerance=max(tolerances), seed=seed, **solve_options)
+    else:
+        mirad.solve(mi.cornell_box(), tolerance=0.2, seed=seed)
+        result.notes.append(f"JIT warm-up on the Cornell box (scene over {WARM_UP_TRIANGLES} triangles): "
+                            "mirad's first timing may include a little kernel compilation")
     triangle_reference(loaded, samples_per_triangle=2, seed=999, triangles=np.arange(min(64, loaded.triangle_count)))
 
     # --- reference -----------------------------------------------------------------------------
     ref = cached_reference(loaded, cache_dir=cache_dir, samples_per_triangle=reference_samples,
                            seed=reference_seed)
     floor = compare(ref.radiosity, ref.radiosity, ref.stderr, area=area)["noise"]
+    result.reference = {"samples_per_triangle": reference_samples, "seed": reference_seed, "seconds": ref.seconds,
+                        "paths": ref.paths, "noise": floor, "from_cache": ref.from_cache, "method": ref.method}
     say(f"reference: {reference_samples} samples/triangle, {ref.seconds:.1f} s"
         f"{' (from cache)' if ref.from_cache else ''}; noise floor L1 {floor['l1']:.4%}, RMS {floor['rms']:.4%}")
+    report(result)
+
+    # --- path tracer as an estimator -------------------------------------------------------------
+    triangle_reference(loaded, samples_per_triangle=min(pt_samples), seed=998)  # warm-up at full width
+    spent = 0.0
+    for k, n in enumerate(sorted(pt_samples)):
+        rows = result.path_tracer
+        if max_seconds is not None and rows and spent + 4 * rows[-1]["seconds"] > max_seconds:
+            result.notes.append(f"path-tracer sweep stopped before {n} samples/triangle (budget {max_seconds:g} s)")
+            say(result.notes[-1])
+            break
+        est = triangle_reference(loaded, samples_per_triangle=n, seed=reference_seed + 1000 + k)
+        spent += est.seconds
+        err = compare(est.radiosity, ref.radiosity, ref.stderr, area=area)
+        rows.append({"samples": n, "seconds": est.seconds, **err})
+        say(f"path tracer {n} samples/triangle: {est.seconds:.2f} s, L1 {err['l1']:.4%}")
+        finish(result)
+        report(result)
 
     # --- mirad sweep ------------------------------------------------------------------------------
-    rows, spent, last_sol = [], 0.0, None
+    spent, last_sol = 0.0, None
     for tol in sorted(tolerances, reverse=True):
+        rows = result.mirad
         if max_seconds is not None and rows and spent + 4 * rows[-1]["seconds"] > max_seconds:
-            say(f"mirad: stopping before tolerance {tol:g} (time budget {max_seconds:g} s)")
+            result.notes.append(f"mirad sweep stopped before tolerance {tol:g} (budget {max_seconds:g} s)")
+            say(result.notes[-1])
             break
+        result.running = f"mirad at tolerance {tol:g}"
+        report(result)
         t0 = time.perf_counter()
         sol = mirad.solve(loaded, tolerance=tol, seed=seed, **solve_options)
         dt = time.perf_counter() - t0
@@ -242,53 +296,15 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
                      "elements": st.get("elements"), "leaves": st.get("leaves"), "links": st.get("links"),
                      "rays": st.get("rays"), "estimated_error": st.get("estimated_error")})
         last_sol = sol
+        result.running = ""
+        result.shapes = shape_errors(sol.triangle_radiosity, ref.radiosity, area=area, shape=loaded.tri_shape,
+                                     stderr=ref.stderr, names=loaded.shape_ids)
         say(f"mirad tolerance {tol:g}: {dt:.2f} s, L1 {err['l1']:.4%}, RMS {err['rms']:.4%}")
+        finish(result)
+        report(result)
 
-    # --- path tracer as an estimator -------------------------------------------------------------
-    pt_rows, spent = [], 0.0
-    for k, n in enumerate(sorted(pt_samples)):
-        if max_seconds is not None and pt_rows and spent + 4 * pt_rows[-1]["seconds"] > max_seconds:
-            say(f"path tracer: stopping before {n} samples/triangle (time budget {max_seconds:g} s)")
-            break
-        est = triangle_reference(loaded, samples_per_triangle=n, seed=reference_seed + 1000 + k)
-        spent += est.seconds
-        err = compare(est.radiosity, ref.radiosity, ref.stderr, area=area)
-        pt_rows.append({"samples": n, "seconds": est.seconds, **err})
-        say(f"path tracer {n} samples/triangle: {est.seconds:.2f} s, L1 {err['l1']:.4%}")
-
-    # --- time ratio at equal error ---------------------------------------------------------------
-    ratios, crossings = {}, {}
-    for target in targets:
-        tm, how_m = time_at_error([r["seconds"] for r in rows], [r["l1"] for r in rows], target)
-        if target < 2 * floor["l1"]:
-            tp, how_p = None, "below twice the reference noise floor"
-            tp_i, how_i = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target)
-            if tp_i is not None and how_i != "extrapolated":
-                tp, how_p = tp_i, how_i
-        else:
-            tp, how_p = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target,
-                                      extrapolate_slope=-0.5)
-        crossings[target] = {"mirad": (tm, how_m), "path_tracer": (tp, how_p)}
-        ratios[target] = tp / tm if (tm and tp) else None
-        if ratios[target] is not None:
-            say(f"at {target:.0%} L1: mirad {tm:.3g} s ({how_m}), path tracer {tp:.3g} s ({how_p}): "
-                f"mirad is {ratios[target]:.2f}x faster")
-        else:
-            best = min(rows, key=lambda r: r["l1"]) if rows else None
-            why = (f"mirad did not reach it (best {best['l1']:.2%} at {best['seconds']:.2f} s)" if tm is None and best
-                   else f"path tracer: {how_p}")
-            say(f"at {target:.0%} L1: no ratio ({why})")
-
-    shapes = shape_errors(last_sol.triangle_radiosity, ref.radiosity, area=area, shape=loaded.tri_shape,
-                          stderr=ref.stderr, names=loaded.shape_ids) if last_sol is not None else []
-
-    result = ValidationResult(name=name, scene_source=loaded.source, triangles=loaded.triangle_count,
-                              fingerprint=loaded.fingerprint,
-                              reference={"samples_per_triangle": reference_samples, "seed": reference_seed,
-                                         "seconds": ref.seconds, "paths": ref.paths, "noise": floor,
-                                         "from_cache": ref.from_cache, "method": ref.method},
-                              mirad=rows, path_tracer=pt_rows, ratios=ratios, crossings=crossings, shapes=shapes,
-                              image={})
+    for line in ratio_lines(result):
+        say(line.replace("**", ""))
 
     # --- images --------------------------------------------------------------------------------------
     from .solution import atomic_write
@@ -297,18 +313,69 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
         result.image = _compare_images(loaded, last_sol, result, out, name, image_spp=image_spp,
                                        render_spp=render_spp, seed=reference_seed, cache_dir=cache_dir)
         say(f"image: relative MSE {result.image['relmse']:.4g} (reference noise {result.image['noise']:.2g})")
+        report(result)
 
     # --- plot and table ------------------------------------------------------------------------------
-    plot = out / f"{name}-speed-error.png"
+    write_outputs(result, out, write_table=write_table)
+    say("wrote " + ", ".join(str(p) for p in result.files.values()))
+    return result
+
+
+def finish(result: ValidationResult) -> ValidationResult:
+    """(Re)compute the crossings and time ratios of a result from its rows."""
+    floor = result.reference.get("noise", {}).get("l1", 0.0)
+    rows, pt_rows = result.mirad, result.path_tracer
+    for target in getattr(result, "targets", DEFAULT_TARGETS):
+        tm, how_m = time_at_error([r["seconds"] for r in rows], [r["l1"] for r in rows], target)
+        if target < 2 * floor:
+            tp, how_p = None, "below twice the reference noise floor"
+            tp_i, how_i = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target)
+            if tp_i is not None:
+                tp, how_p = tp_i, how_i
+        else:
+            tp, how_p = time_at_error([r["seconds"] for r in pt_rows], [r["l1"] for r in pt_rows], target,
+                                      extrapolate_slope=-0.5)
+        result.crossings[target] = {"mirad": (tm, how_m), "path_tracer": (tp, how_p)}
+        result.ratios[target] = tp / tm if (tm and tp) else None
+    return result
+
+
+def write_outputs(result: ValidationResult, out, *, write_table: bool = True) -> None:
+    """Write NAME-speed-error.png and (optionally) NAME.md for a result, atomically."""
+    from .solution import atomic_write
+
+    out = Path(out)
+    finish(result)
+    plot = out / f"{result.name}-speed-error.png"
     png = _plot(result)
     atomic_write(plot, lambda handle: handle.write(png))
     result.files["plot"] = plot
     result.markdown = markdown(result)
-    table = out / f"{name}.md"
-    atomic_write(table, lambda handle: handle.write(result.markdown.encode()))
-    result.files["table"] = table
-    say(f"wrote {table}, {plot}" + (f", {result.files['images']}" if "images" in result.files else ""))
-    return result
+    if write_table:
+        table = out / f"{result.name}.md"
+        atomic_write(table, lambda handle: handle.write(result.markdown.encode()))
+        result.files["table"] = table
+
+
+def to_json(result: ValidationResult) -> dict:
+    """The measured data of a result as plain JSON types (``from_json`` reads it back)."""
+    return {"name": result.name, "scene_source": result.scene_source, "triangles": result.triangles,
+            "fingerprint": result.fingerprint, "reference": result.reference, "mirad": result.mirad,
+            "path_tracer": result.path_tracer, "shapes": result.shapes, "image": result.image,
+            "notes": result.notes, "running": getattr(result, "running", ""),
+            "targets": list(getattr(result, "targets", DEFAULT_TARGETS)),
+            "files": {k: str(v) for k, v in result.files.items()}}
+
+
+def from_json(data: dict) -> ValidationResult:
+    result = ValidationResult(name=data["name"], scene_source=data["scene_source"], triangles=data["triangles"],
+                              fingerprint=data["fingerprint"], reference=data["reference"], mirad=data["mirad"],
+                              path_tracer=data["path_tracer"], ratios={}, crossings={}, shapes=data["shapes"],
+                              image=data["image"], files={k: Path(v) for k, v in data["files"].items()},
+                              notes=list(data["notes"]))
+    result.running = data.get("running", "")
+    result.targets = tuple(data.get("targets", DEFAULT_TARGETS))
+    return finish(result)
 
 
 def _compare_images(scene, sol, result, out: Path, name: str, *, image_spp, render_spp, seed, cache_dir) -> dict:
@@ -471,6 +538,9 @@ def markdown(result: ValidationResult) -> str:
     for r in result.path_tracer:
         lines.append(f"| {r['samples']} | {r['seconds']:.2f} | {_pct(r['l1'])} | {_pct(r['rms'])} | "
                      f"{_pct(r['rms_corrected'])} | {_pct(r['linf'])} |")
+    if result.running:
+        lines += ["", f"**{result.running} did not finish within the time limit**; the rows above are what "
+                  "finished."]
     lines += ["", "### Time ratio at equal error (path tracer seconds / mirad seconds)", ""]
     lines += [f"- {x}" for x in ratio_lines(result)]
     lines += ["", f"![speed against error]({result.files.get('plot', Path(result.name + '-speed-error.png')).name})", ""]
