@@ -1,23 +1,22 @@
 """All solver options in one frozen dataclass; the API, the CLI and the plugin build it.
 
-How ``tolerance`` maps onto the refinement oracle
--------------------------------------------------
-``tolerance`` is the target relative error of the solution (area-weighted relative
-L1 of per-triangle radiosity against the exact answer). The BF oracle refines a
-link p<-q while ``rho_p * B_q * F_hat_pq > eps_link`` with
+How ``tolerance`` maps onto refinement
+--------------------------------------
+``tolerance`` is the target relative error of the solution: the area-weighted L1
+error of per-triangle radiosity over the area-weighted mean *reflected* radiosity
+B - E (emission is exact, so the error is measured against the light the solver
+computes; relative to the mean of B itself, the error is smaller still).
 
-    eps_link = link_error_scale * tolerance * B_mean,
-
-where ``B_mean`` is the area-weighted mean radiosity of the current solution
-(so thresholds are relative and the solution is scale invariant), and ``F_hat``
-is the largest point-to-source form factor over the link's receiver samples
-(bounded by 1 even for touching elements). Elements are never split below
-``min_area`` (relative to the total surface area) or below the area at which an
-element's own share of the error drops under the tolerance:
+Every link p <- q gets an error in watts (see ``solver.link_power_errors``):
+``A_p * rho_p * (B_q * std_k(G v) / sqrt(n) + F_pq * spread_q)``, the sampling
+error of its form factor plus the error of carrying the source's mean radiosity.
+Their sum over ``A_total * mean(B - E)``, times a calibration constant measured
+against Mitsuba's path tracer (``solver.ESTIMATE_CALIBRATION``), is
+``stats["estimated_error"]``. Multigridding passes refine every link whose error
+exceeds ``link_error_scale * budget / (2 M)`` (M links, budget = the total error
+the tolerance allows), splitting the source when its term dominates, and re-solve,
+until the estimate is at or below ``tolerance``. Elements never split below
 ``A_min = max(min_area, (tolerance * min_area_factor)^2) * A_total``.
-Multigridding starts at ``8 * eps_link`` and halves it per pass, re-solving in
-between, until the oracle holds at ``eps_link`` and the solver has converged to
-``solver_tolerance``.
 """
 
 from __future__ import annotations
@@ -57,8 +56,9 @@ class Settings:
         Smallest element area relative to the total surface area.
     min_area_factor : float, default 0.05
         Elements stop splitting at area (tolerance * min_area_factor)^2 * A_total.
-    link_error_scale : float, default 10.0
-        Scale between the tolerance and the BF oracle threshold (see module docstring).
+    link_error_scale : float, default 5.0
+        How far above its even share of the error budget a link may stay unrefined in a
+        pass (see module docstring); smaller refines more per pass.
     max_refine_passes : int, default 12
         Largest number of multigridding passes (refine, then solve).
     max_elements : int, default 2_000_000
@@ -78,7 +78,7 @@ class Settings:
     max_iterations: int = 2000
     min_area: float = 1e-6
     min_area_factor: float = 0.05
-    link_error_scale: float = 10.0
+    link_error_scale: float = 5.0
     max_refine_passes: int = 12
     max_elements: int = 2_000_000
     variant: str | None = None

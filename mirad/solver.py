@@ -21,15 +21,13 @@ from tqdm.auto import tqdm
 from . import _runtime  # noqa: F401
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
-from .oracle import choose_splits, link_error, link_uncertainty
+from .oracle import bf_error, choose_splits, kernel_error, link_uncertainty
 from .scene import Scene
 from .settings import Settings
 from .visibility import Geometry, evaluate_links
 
 #: Corners closer than this fraction of the diagonal to a plane count as in the plane.
 PLANE_EPS = 1e-6
-#: Multigridding starts at 2**COARSE_LEVELS times the target threshold.
-COARSE_LEVELS = 3
 #: Pairs tested per chunk during initial linking.
 _LINK_CHUNK = 1 << 22
 
@@ -167,18 +165,27 @@ def solve_problem(scene: Scene, settings: Settings):
     total_iterations = iterations
     bar.update(1)
 
-    # --- multigridding: refine with a halving threshold, re-solve -----------------------------
+    # --- multigridding: refine against a shrinking power budget, re-solve ------------------
+    # Each link's error is a power (W): the receiver's area times its radiosity error (see
+    # link_power_errors). The solution's estimated relative error is their sum over the total
+    # power scale A_total * B_mean. A pass refines every link above eps = budget / (2 M): the
+    # links below it hold at most half the budget, so passes drive the estimate down until it
+    # meets the tolerance (or elements reach their minimum size).
     passes = 0
     capped = False
+    estimated = np.inf
     for level in range(settings.max_refine_passes):
         b_elem = system.pull @ b_leaf
-        b_mean = _mean_radiosity(b_leaf, prob.elements.area[leaves])
-        eps_target = settings.link_error_scale * settings.tolerance * b_mean
-        eps = eps_target * 2.0 ** max(0, COARSE_LEVELS - level)
-        t = time.perf_counter()
+        b_mean = _reflected_mean(prob, leaves, b_leaf)
+        budget = settings.tolerance / ESTIMATE_CALIBRATION * b_mean * prob.total_area
         spread = _radiosity_spread(prob, system, b_elem)
+        estimated = _estimate(prob, b_elem, spread, b_mean)
+        if estimated <= settings.tolerance:
+            break
+        eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links), 1))
+        t = time.perf_counter()
         refined, capped = _refine(prob, b_elem, spread, eps)
-        prob.timing["refine"] += time.perf_counter() - t - 0.0
+        prob.timing["refine"] += time.perf_counter() - t
         passes += 1
         if refined:
             leaves = prob.elements.leaves
@@ -187,7 +194,7 @@ def solve_problem(scene: Scene, settings: Settings):
             total_iterations += iterations
         bar.update(1)
         bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
-        if (not refined and eps <= eps_target) or capped:
+        if not refined or capped:
             break
     # --- final estimate with fresh samples --------------------------------------------------
     # The oracle kept exactly the links whose samples looked smooth; estimating them from
@@ -205,23 +212,16 @@ def solve_problem(scene: Scene, settings: Settings):
 
     # --- results --------------------------------------------------------------------------------
     h_leaf = system.gather(b_leaf) + system.push @ prob.direct
-    # Error estimate (relative, same norm as the validation metric): per link, the sampling
-    # error of its transfer (rho B_src std(G v) / sqrt(n)) plus the source-representation
-    # error (rho F spread_src), summed per element and pushed to the leaves; amplified by the
-    # interreflection factor 1 / (1 - rho_mean) that carries local errors through the scene.
+    # Error estimate (relative, same norm as the validation metric): the summed power
+    # error of the links (see link_power_errors) over A_total * B_mean; per leaf, the
+    # error density of the links on it and its ancestors, W/m^2.
     b_elem = system.pull @ b_leaf
-    links = prob.links
-    rho_l = prob.rho(links.recv)
     spread = _radiosity_spread(prob, system, b_elem)
-    per_link = (link_uncertainty(links.ff_std, rho_l, b_elem[links.src]) / np.sqrt(settings.samples_per_link)
-                + links.ff * rho_l.mean(axis=1) * spread[links.src])
-    per_elem = np.bincount(links.recv, weights=per_link, minlength=len(prob.elements))
-    err_leaf = system.push @ per_elem
     area_leaf = prob.elements.area[leaves]
-    mean_b = _mean_radiosity(b_leaf, area_leaf)
-    rho_mean = float(_mean_radiosity(system.rho, area_leaf)) if system.rho.any() else 0.0
-    estimated = float((area_leaf * err_leaf).sum() / max(area_leaf.sum() * mean_b, 1e-300))
-    estimated /= max(1.0 - rho_mean, 0.05)
+    estimated = _estimate(prob, b_elem, spread, _reflected_mean(prob, leaves, b_leaf))
+    per_link = sum(link_power_errors(prob, prob.links, b_elem, spread))
+    per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
+    err_leaf = system.push @ (per_elem / prob.elements.area)
     prob.timing["total"] = time.perf_counter() - t_start
     stats = {
         "elements": int(len(prob.elements)),
@@ -244,6 +244,50 @@ def solve_problem(scene: Scene, settings: Settings):
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats)
+
+
+#: Measured error / summed link error on the validation scenes (see settings.py).
+ESTIMATE_CALIBRATION = 0.13
+
+
+def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray,
+                      spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-link error as power (W): (receiver term, source term), each (M,).
+
+    receiver term  A_p * oracle error (W/m^2): for the kernel oracle rho_p * B_q * the spread
+                   of the sampled kernel over the receiver, i.e. how far the link's one value
+                   is from the irradiance it really brings to each point of p;
+    source term    A_p * rho_p * F_pq * spread_q: the link carries the source's mean radiosity,
+                   off by the source's own variation.
+    Weighting by area makes the sum match the area-weighted error norm, so tiny elements
+    next to a contact edge stop splitting once their share is small.
+    """
+    area = prob.elements.area[links.recv]
+    rho = prob.rho(links.recv)
+    if prob.settings.oracle == "bf":
+        receiver = area * bf_error(links.ff_max, rho, b_elem[links.src])
+    else:
+        receiver = area * kernel_error(links.ff_std, rho, b_elem[links.src]) \
+            / np.sqrt(prob.settings.samples_per_link)
+    source = area * links.ff * rho.max(axis=1) * spread[links.src]
+    return receiver, source
+
+
+def _reflected_mean(prob: Problem, leaves: np.ndarray, b_leaf: np.ndarray) -> float:
+    """Area-weighted mean reflected radiosity B - E over the leaves, W/m^2 (mean over channels).
+
+    Emission is known exactly, so errors are measured against the light the solver computes:
+    a scene whose mean is dominated by a bright emitter still gets its reflected light right.
+    """
+    reflected = np.maximum(b_leaf - prob.patch_emission[prob.elements.patch[leaves]], 0.0)
+    return _mean_radiosity(reflected, prob.elements.area[leaves])
+
+
+def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
+    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity)."""
+    receiver, source = link_power_errors(prob, prob.links, b_elem, spread)
+    total = float(receiver.sum() + source.sum())
+    return ESTIMATE_CALIBRATION * total / max(prob.total_area * b_mean, 1e-300)
 
 
 def _mean_radiosity(b_leaf: np.ndarray, area: np.ndarray) -> float:
@@ -280,10 +324,7 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         links = prob.links
         fresh = np.arange(checked, len(links))
         recv, src = links.recv[fresh], links.src[fresh]
-        rho = prob.rho(recv)
-        error = link_error(prob.settings.oracle, links.select(fresh), rho, b_elem[src])
-        # source term: the link carries the source's mean radiosity, off by its spread
-        source_error = links.ff[fresh] * rho.max(axis=1) * spread[src]
+        error, source_error = link_power_errors(prob, links.select(fresh), b_elem, spread)
         can_split = e.area > prob.min_area
         split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],
                                               can_split[recv], can_split[src],
