@@ -103,10 +103,15 @@ class Shading:
         # per-side locator scenes and their leaf numbering
         self.locators = []
         self.rows = []
+        # Each leaf is lifted a quarter of the lookup offset along its own normal, so leaves of
+        # different shapes that coincide (a box standing on the floor: its bottom face and the
+        # floor under it) are apart and the downward lookup ray meets its own side's leaf first.
+        lift = 0.25 * LOCATE_OFFSET * scene.diagonal
+        lifted = a["leaf_verts"] + lift * a["leaf_normal"][:, None, :]
         for s in (0, 1):
             rows = np.flatnonzero(side == s)
             self.rows.append(rows)
-            self.locators.append(_leaf_mesh(f"leaves_{s}", a["leaf_verts"][rows]) if len(rows) else None)
+            self.locators.append(_leaf_mesh(f"leaves_{s}", lifted[rows]) if len(rows) else None)
         self.row_dr = [_uint(r) if len(r) else None for r in self.rows]
         # values per leaf (flat) and per leaf corner (smooth), radiance = B / pi
         self.flat = [_float(b[:, c] / np.pi) for c in range(3)]

@@ -234,13 +234,15 @@ def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance:
 # Lightmaps
 # ------------------------------------------------------------------------------------------
 
-def bake_lightmaps(solution, *, resolution: int = 256, supersample: int = 2, dilate: int = 8) -> dict:
+def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None = None,
+                   dilate: int = 8) -> dict:
     """Radiosity (W/m^2) baked into a (resolution, resolution, 3) texture per shape with UVs.
 
     Texel (row i, column j) covers u in [j, j+1)/R and v in [i, i+1)/R: row 0 is v = 0, as
     Mitsuba's ``bitmap`` texture reads it, so a map can texture the same shape directly. Each
     texel averages ``supersample``^2 points, each showing the radiosity of the leaf element under
-    it; empty texels next to covered ones are filled from their neighbours ``dilate`` times so
+    it (default: enough for at least 1024 points across the map, so a coarse map of a finely
+    refined solution still averages each texel's footprint); empty texels next to covered ones are filled from their neighbours ``dilate`` times so
     bilinear lookups at island edges do not pull in black. Shapes without UVs are left out.
     Returns {shape_id: image}.
     """
@@ -249,6 +251,8 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int = 2, dil
     if isinstance(resolution, bool) or int(resolution) != resolution or not 1 <= resolution <= 16384:
         raise SettingsError(f"lightmap resolution={resolution!r} must be an integer in [1, 16384], e.g. 256")
     resolution = int(resolution)
+    if supersample is None:
+        supersample = max(2, -(-1024 // resolution))
     a = solution._a
     uv_all = a.get("vertex_uv")
     if uv_all is None:

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from . import _runtime  # noqa: F401
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
-from .oracle import bf_error, choose_splits, kernel_error, link_uncertainty
+from .oracle import choose_splits
 from .scene import Scene
 from .settings import Settings
 from .visibility import Geometry, evaluate_links
@@ -53,6 +53,7 @@ class Problem:
         tol = settings.tolerance
         self.min_area = max(settings.min_area, (tol * settings.min_area_factor) ** 2) * self.total_area
         self.links = Links()
+        self._rho_max = np.zeros(0)
         self.rays = 0
         self.direct = np.zeros((len(self.elements), self.channels))   # irradiance from point/sky lights
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "solve": 0.0, "direct": 0.0}
@@ -64,6 +65,13 @@ class Problem:
 
     def rho(self, ids) -> np.ndarray:
         return self.patch_rho[self.elements.patch[ids]]
+
+    @property
+    def rho_max(self) -> np.ndarray:
+        """(N,) largest reflectance over channels of every element."""
+        if len(self._rho_max) != len(self.elements):
+            self._rho_max = self.patch_rho.max(axis=1)[self.elements.patch]
+        return self._rho_max
 
     def geometry(self) -> Geometry:
         e = self.elements
@@ -269,14 +277,22 @@ def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray,
     next to a contact edge stop splitting once their share is small.
     """
     area = prob.elements.area[links.recv]
-    rho = prob.rho(links.recv)
+    rho_b = _max_rho_b(prob, links, b_elem)
     if prob.settings.oracle == "bf":
-        receiver = area * bf_error(links.ff_max, rho, b_elem[links.src])
+        receiver = area * links.ff_max * rho_b
     else:
-        receiver = area * kernel_error(links.ff_std, rho, b_elem[links.src]) \
-            / np.sqrt(prob.settings.samples_per_link)
-    source = area * links.ff * rho.max(axis=1) * spread[links.src]
+        receiver = area * links.ff_std * rho_b / np.sqrt(prob.settings.samples_per_link)
+    source = area * prob.rho_max[links.recv] * links.ff * spread[links.src]
     return receiver, source
+
+
+def _max_rho_b(prob: Problem, links: Links, b_elem: np.ndarray) -> np.ndarray:
+    """(M,) max over channels of rho_recv * B_src, one channel at a time (no (M, C) temporaries)."""
+    patch_recv = prob.elements.patch[links.recv]
+    out = np.zeros(len(links))
+    for c in range(b_elem.shape[1]):
+        np.maximum(out, prob.patch_rho[patch_recv, c] * b_elem[links.src, c], out=out)
+    return out
 
 
 def _reflected_mean(prob: Problem, leaves: np.ndarray, b_leaf: np.ndarray) -> float:
@@ -310,7 +326,7 @@ def _radiosity_spread(prob: Problem, system: LeafSystem, b_elem: np.ndarray) -> 
     variation is estimated from its incoming links' kernel spread (rho * B_src * std(G v)).
     """
     links = prob.links
-    u = link_uncertainty(links.ff_std, prob.rho(links.recv), b_elem[links.src])
+    u = links.ff_std * _max_rho_b(prob, links, b_elem)
     per_elem = np.bincount(links.recv, weights=u, minlength=len(prob.elements))
     estimated = system.pull @ (system.push @ per_elem)
     pull = system.pull.tocoo()
@@ -364,8 +380,10 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         owner, child = e.children_pairs(pushed_recv[inner])
         new_recv = np.concatenate([pushed_recv[~inner], child])
         new_src = np.concatenate([pushed_src[~inner], pushed_src[inner][owner]])
-        ok = prob.facing_pairs(new_recv, new_src)
-        new_links = prob.evaluate(new_recv[ok], new_src[ok], prob.geometry())
+        # children of facing pairs: evaluate them all and drop the ones no sample point sees
+        # (cheaper than a geometric facing test on every new pair)
+        new_links = prob.evaluate(new_recv, new_src, prob.geometry())
+        new_links = new_links.select(new_links.ff_max > 0)
         kept = links.select(keep)
         checked = len(kept)
         prob.links = kept.extend(new_links)

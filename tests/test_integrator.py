@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 CORNELL = SCENES / "cornell-box" / "scene.xml"
-WIDTH, HEIGHT = 64, 48
+WIDTH, HEIGHT = 128, 96
 #: Floor mean of the image against shape_radiosity("floor") / pi (issue: 3 %).
 FLOOR_REL = 0.03
 
