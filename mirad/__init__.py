@@ -50,7 +50,7 @@ def render(scene, solution=None, *, spp: int = 4, **options):
     return _render(scene, solution, spp=spp, **options)
 
 
-def solve(scene, *, tolerance: float = 0.01, samples_per_link: int = 16, seed: int = 0,
+def solve(scene, *, tolerance: float = 0.03, samples_per_link: int = 16, seed: int = 0,
           solver: str | None = None, variant: str | None = None, quiet: bool = True,
           **options) -> Solution:
     """Solve the radiosity of a scene (XML path, Mitsuba dict, mi.Scene or mirad Scene).

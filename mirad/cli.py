@@ -19,7 +19,7 @@ def _parser() -> argparse.ArgumentParser:
 
     solve = sub.add_parser("solve", parents=[common], help="solve the radiosity and write it out")
     solve.add_argument("-o", "--output", required=True, help="output file: .ply (vertex colours) or .npz (full solution)")
-    solve.add_argument("--tolerance", type=float, default=0.01, help="target relative error (default 0.01)")
+    solve.add_argument("--tolerance", type=float, default=0.03, help="target relative error (default 0.03)")
     solve.add_argument("--samples-per-link", type=int, default=16, help="shadow rays per link (default 16)")
     solve.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     solve.add_argument("--solver", choices=["gmres", "gauss-seidel", "jacobi"], default=None,
@@ -117,7 +117,7 @@ def _add_output_commands(sub, common) -> None:
     solved = argparse.ArgumentParser(add_help=False)
     solved.add_argument("--solution", default=None,
                         help="use this saved solution (.npz from 'mirad solve') instead of solving again")
-    solved.add_argument("--tolerance", type=float, default=None, help="target relative error (default 0.01)")
+    solved.add_argument("--tolerance", type=float, default=None, help="target relative error (default 0.03)")
     solved.add_argument("--samples-per-link", type=int, default=None, help="shadow rays per link (default 16)")
     solved.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
 

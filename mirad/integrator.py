@@ -4,7 +4,7 @@
 
  * - tolerance
    - |float|
-   - Target relative error of the radiosity solution, in (0, 1). (Default: 0.01)
+   - Target relative error of the radiosity solution, in (0, 1). (Default: 0.03)
  * - samples_per_link
    - |int|
    - Shadow rays and receiver quadrature points per link of the solver, >= 1. (Default: 16)

@@ -36,7 +36,7 @@ class Settings:
 
     Attributes
     ----------
-    tolerance : float, default 0.01
+    tolerance : float, default 0.03
         Target relative error of the solution (0 < tolerance < 1), see module docstring.
     samples_per_link : int, default 16
         Receiver quadrature points and visibility rays per link (>= 1).
@@ -69,7 +69,7 @@ class Settings:
         No progress bars.
     """
 
-    tolerance: float = 0.01
+    tolerance: float = 0.03
     samples_per_link: int = 16
     seed: int = 0
     solver: str = "gmres"
