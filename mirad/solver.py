@@ -226,13 +226,16 @@ def solve_problem(scene: Scene, settings: Settings):
 
     # --- results --------------------------------------------------------------------------------
     h_leaf = system.gather(b_leaf) + system.push @ prob.direct
-    # Error estimate (relative, same norm as the validation metric): the summed power
-    # error of the links (see link_power_errors) over A_total * B_mean; per leaf, the
-    # error density of the links on it and its ancestors, W/m^2.
+    # Error estimate (relative, the tolerance's norm): the summed power error of the links
+    # (see link_power_errors) over A_total * mean(B - E); per leaf, the error density of the
+    # links on it and its ancestors, W/m^2.
     b_elem = system.pull @ b_leaf
     spread = _radiosity_spread(prob, system, b_elem)
     area_leaf = prob.elements.area[leaves]
-    estimated = _estimate(prob, b_elem, spread, _reflected_mean(prob, leaves, b_leaf))
+    reflected_mean = _reflected_mean(prob, leaves, b_leaf)
+    estimated = _estimate(prob, b_elem, spread, reflected_mean)
+    # the same error over the mean of B itself (emission included): the validation metric's norm
+    estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
     per_link = sum(link_power_errors(prob, prob.links, b_elem, spread))
     per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
     err_leaf = system.push @ (per_elem / prob.elements.area)
@@ -244,6 +247,7 @@ def solve_problem(scene: Scene, settings: Settings):
         "rays": int(prob.rays),
         "seconds": {k: round(v, 4) for k, v in prob.timing.items()},
         "estimated_error": estimated,
+        "estimated_error_of_mean": estimated_of_mean,
         "solver": settings.solver,
         "solver_iterations": int(total_iterations),
         "solver_residual": float(residual),

@@ -294,7 +294,9 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
         st = sol.stats
         rows.append({"tolerance": tol, "seconds": dt, "phases": dict(st.get("seconds", {})), **err,
                      "elements": st.get("elements"), "leaves": st.get("leaves"), "links": st.get("links"),
-                     "rays": st.get("rays"), "estimated_error": st.get("estimated_error")})
+                     "rays": st.get("rays"),
+                     # in the norm of the measured columns (over the mean of B, emission included)
+                     "estimated_error": st.get("estimated_error_of_mean", st.get("estimated_error"))})
         last_sol = sol
         result.running = ""
         result.shapes = shape_errors(sol.triangle_radiosity, ref.radiosity, area=area, shape=loaded.tri_shape,

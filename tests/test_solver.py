@@ -138,3 +138,28 @@ def test_leaf_row_sums_stay_at_most_one_behind_occluders(tmp_path):
     rows = prob.system(leaves).gather(np.ones((len(leaves), 1)))[:, 0]
     assert rows.max() <= 1.0 + 1e-6
     assert np.median(rows) > 0.9           # scaled back, not emptied
+
+
+@pytest.mark.parametrize("tolerance", [0.1, 0.05])
+def test_error_control_on_the_cornell_box_against_path_tracing(cornell, tolerance):
+    """The achieved error meets the tolerance and the estimate is within 2x of it.
+
+    Both in the tolerance's norm: area-weighted L1 of per-triangle radiosity over the mean
+    reflected radiosity B - E, measured against Mitsuba's path tracer.
+    """
+    from mirad.metrics import relative_l1
+    from mirad.reference import triangle_reference
+
+    ref = triangle_reference(cornell, samples_per_triangle=16384, seed=11)
+    sol = mirad.solve(cornell, tolerance=tolerance)
+    area = sol.triangle_area
+    reflected = ref.radiosity - cornell.tri_emission
+    l1 = relative_l1(sol.triangle_radiosity, ref.radiosity, area=area)
+    measured = l1 * area_mean(ref.radiosity, area).mean() / area_mean(reflected, area).mean()
+    noise = relative_l1(ref.radiosity + ref.stderr, ref.radiosity, area=area)
+    assert noise < 0.2 * measured            # the reference is fine enough to judge
+    assert measured <= tolerance
+    estimated = sol.stats["estimated_error"]
+    assert 0.5 * estimated <= measured <= 2.0 * estimated
+    # the same estimate in the validation metric's norm (over mean B)
+    assert 0.5 * sol.stats["estimated_error_of_mean"] <= l1 <= 2.0 * sol.stats["estimated_error_of_mean"]
