@@ -39,6 +39,9 @@ class Elements:
     n_children: np.ndarray
     depth: np.ndarray
     area: np.ndarray
+    #: clusters (cluster.py) are element ids first_cluster .. first_cluster + C - 1, sources only
+    first_cluster: int = -1
+    cluster_children: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
     @classmethod
     def from_patches(cls, verts: np.ndarray) -> "Elements":
@@ -55,6 +58,29 @@ class Elements:
 
     def __len__(self) -> int:
         return len(self.area)
+
+    def add_clusters(self, tree) -> None:
+        """Append the clusters of a ClusterTree (built over the current roots) as source nodes."""
+        c = len(tree)
+        p = len(self)
+        self.first_cluster = p
+        self.cluster_children = tree.children.copy()
+        self.parent[:p] = tree.parent_of_patch
+        self.verts = np.concatenate([self.verts, np.zeros((c, 3, 3))])
+        self.patch = np.concatenate([self.patch, np.zeros(c, np.int32)])
+        self.parent = np.concatenate([self.parent, tree.parent.astype(np.int32)])
+        # not leaves (first_child >= 0) but never split: their children come from the tree
+        self.first_child = np.concatenate([self.first_child, np.zeros(c, np.int32)])
+        self.n_children = np.concatenate([self.n_children, np.full(c, 2, np.int8)])
+        self.depth = np.concatenate([self.depth, np.zeros(c, np.int16)])
+        self.area = np.concatenate([self.area, tree.area])
+
+    def is_cluster(self, ids) -> np.ndarray:
+        """(M,) bool: which ids are clusters."""
+        ids = np.asarray(ids)
+        if self.first_cluster < 0:
+            return np.zeros(ids.shape, bool)
+        return (ids >= self.first_cluster) & (ids < self.first_cluster + len(self.cluster_children))
 
     @property
     def is_leaf(self) -> np.ndarray:
@@ -106,11 +132,15 @@ class Elements:
         return parents
 
     def children_pairs(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For each id (already split): (index into ids repeated per child, child ids)."""
+        """For each id (already split, or a cluster): (index into ids repeated per child, child ids)."""
         counts = self.n_children[ids].astype(np.int64)
         owner = np.repeat(np.arange(len(ids)), counts)
         offset = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-        return owner, self.first_child[ids][owner] + offset
+        child = self.first_child[ids][owner] + offset
+        cluster = self.is_cluster(ids[owner])
+        if cluster.any():
+            child[cluster] = self.cluster_children[ids[owner][cluster] - self.first_cluster, offset[cluster]]
+        return owner, child
 
     def ancestor_matrix(self, leaves: np.ndarray) -> sp.csr_matrix:
         """(L, N) 0/1 matrix: row l has ones at leaf l and all its ancestors (push down)."""

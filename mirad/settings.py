@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from .errors import SettingsError
 
 SOLVERS = ("gmres", "gauss-seidel", "jacobi")
+CLUSTERING = ("auto", "on", "off")
 ORACLES = ("kernel", "bf")
 
 
@@ -63,6 +64,12 @@ class Settings:
         Largest number of multigridding passes (refine, then solve).
     max_elements : int, default 2_000_000
         Safety cap on the element count; refinement stops there with a warning.
+    clustering : str, default "auto"
+        "on": every patch starts linked to the root of a bounding-volume hierarchy over the
+        patches, opened by refinement (links grow ~linearly); "off": all facing pairs of
+        patches start linked (O(P^2)); "auto": on above ``cluster_threshold`` patches.
+    cluster_threshold : int, default 256
+        Patch count above which "auto" clustering switches on.
     variant : str or None, default None
         Mitsuba variant; None picks cuda_ad_rgb with a GPU, else llvm_ad_rgb.
     quiet : bool, default False
@@ -81,6 +88,8 @@ class Settings:
     link_error_scale: float = 5.0
     max_refine_passes: int = 12
     max_elements: int = 2_000_000
+    clustering: str = "auto"
+    cluster_threshold: int = 256
     variant: str | None = None
     quiet: bool = False
 
@@ -95,6 +104,8 @@ class Settings:
             )
         if self.solver not in SOLVERS:
             raise SettingsError(f"solver={self.solver!r} is unknown; choose one of {', '.join(SOLVERS)}")
+        if self.clustering not in CLUSTERING:
+            raise SettingsError(f"clustering={self.clustering!r} is unknown; choose one of {', '.join(CLUSTERING)}")
         if self.oracle not in ORACLES:
             raise SettingsError(f"oracle={self.oracle!r} is unknown; choose one of {', '.join(ORACLES)}")
         if not (0.0 < self.solver_tolerance < 1.0):

@@ -258,7 +258,9 @@ class Solution:
                 f"{s['rays']:,} rays; {sec['total']:.2f} s (refine {sec['refine']:.2f}, visibility "
                 f"{sec['visibility']:.2f}, solve {sec['solve']:.2f}); estimated error "
                 f"{100 * s['estimated_error']:.2f} % (tolerance {100 * s['settings']['tolerance']:.2g} %); "
-                f"{s['solver']} solver, {s['solver_iterations']} iterations; variant {s['variant']}.")
+                f"{s['solver']} solver, {s['solver_iterations']} iterations; "
+                + (f"{s['clusters']} clusters of patches as sources; " if s.get("clusters") else "")
+                + f"variant {s['variant']}.")
 
 
 def load_solution(path, scene=None) -> Solution:

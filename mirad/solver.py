@@ -48,15 +48,53 @@ class Problem:
         self.patch_emission = scene.patch_emission[:, : self.channels]
         self.patch_curve = (scene.curve_center[tris], scene.curve_axis[tris], scene.curve_radius[tris])
         self.elements = Elements.from_patches(verts)
+        self.clusters = None
+        if settings.clustering == "on" or (settings.clustering == "auto"
+                                           and len(verts) > settings.cluster_threshold):
+            self._add_clusters(verts)
         self.diagonal = scene.diagonal
         self.total_area = float(scene.tri_area.sum())
         tol = settings.tolerance
         self.min_area = max(settings.min_area, (tol * settings.min_area_factor) ** 2) * self.total_area
         self.links = Links()
         self._rho_max = np.zeros(0)
+        self.stream = 0
+        self.b_max_below = np.zeros(len(self.elements))
         self.rays = 0
         self.direct = np.zeros((len(self.elements), self.channels))   # irradiance from point/sky lights
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "solve": 0.0, "direct": 0.0}
+
+    def _add_clusters(self, verts: np.ndarray) -> None:
+        """Bounding-volume hierarchy over the patches, appended as source-only elements."""
+        from .cluster import ClusterGeometry, build_tree, cluster_boxes
+
+        area = self.elements.area
+        tree = build_tree(verts.mean(axis=1), area)
+        if len(tree) == 0:
+            return
+        self.elements.add_clusters(tree)
+        self.clusters = ClusterGeometry.upload(tree, area)
+        self.cluster_lo, self.cluster_hi = cluster_boxes(tree, verts)
+        # clusters holding an emitter are always opened (area sampling would rarely hit it)
+        emits = np.concatenate([self.patch_emission.max(axis=1) > 0, np.zeros(len(tree), bool)])
+        p = len(verts)
+        for lev in range(int(tree.level.max()), -1, -1):
+            nodes = np.flatnonzero(tree.level == lev)
+            emits[p + nodes] = emits[tree.children[nodes, 0]] | emits[tree.children[nodes, 1]]
+        self.cluster_emits = emits[p:]
+        self.cluster_centre = 0.5 * (self.cluster_lo + self.cluster_hi)
+        self.cluster_radius = 0.5 * np.linalg.norm(self.cluster_hi - self.cluster_lo, axis=1)
+
+    def bounding_spheres(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centre (M, 3) and radius (M,) of spheres around elements or clusters ids."""
+        e = self.elements
+        centre = e.verts[ids].mean(axis=1)
+        radius = np.linalg.norm(e.verts[ids] - centre[:, None], axis=2).max(axis=1)
+        cl = e.is_cluster(ids)
+        if cl.any():
+            k = ids[cl] - e.first_cluster
+            centre[cl], radius[cl] = self.cluster_centre[k], self.cluster_radius[k]
+        return centre, radius
 
     # --- geometry helpers -------------------------------------------------------------------
     def normals(self, ids=None) -> np.ndarray:
@@ -85,8 +123,11 @@ class Problem:
 
     # --- links ------------------------------------------------------------------------------
     def initial_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """All ordered pairs of patches that face each other (chunked, vectorised)."""
+        """Every patch <- the root cluster, or without clusters all ordered pairs of patches that
+        face each other (chunked, vectorised)."""
         p = len(self.patch_normal)
+        if self.clusters is not None:
+            return np.arange(p, dtype=np.int32), np.full(p, self.elements.first_cluster, np.int32)
         recv_all, src_all = [], []
         rows_per_chunk = max(1, _LINK_CHUNK // max(p, 1))
         cols = np.arange(p)
@@ -104,9 +145,10 @@ class Problem:
     def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry, *, stream: int = 0) -> Links:
         """Evaluate links; ``stream`` selects an independent random sequence."""
         t = time.perf_counter()
+        self.stream = stream
         seed = self.settings.seed + 0x10000 * stream
         wave = evaluate_links(self.scene.mi_scene, geo, recv, src,
-                              samples=self.settings.samples_per_link, seed=seed)
+                              samples=self.settings.samples_per_link, seed=seed, clusters=self.clusters)
         self.timing["visibility"] += time.perf_counter() - t
         self.rays += wave.rays
         return Links(recv.astype(np.int32), src.astype(np.int32), wave.ff, wave.ff_max, wave.vis,
@@ -118,6 +160,7 @@ class Problem:
         grown = len(self.elements) - len(self.direct)
         if grown > 0:
             self.direct = np.concatenate([self.direct, np.zeros((grown, self.channels))])
+        ids = ids[~self.elements.is_cluster(ids)]
         if not self.scene.light_emitters or len(ids) == 0:
             return
         from .emitters import direct_irradiance
@@ -136,10 +179,31 @@ class Problem:
     def solve(self, system: LeafSystem, x0: np.ndarray):
         """Solve the leaf system from x0 (timed); returns (B (L, C), iterations, residual)."""
         t = time.perf_counter()
-        out = solve_system(system, x0, method=self.settings.solver, tol=self.settings.solver_tolerance,
-                           max_iterations=self.settings.max_iterations)
+        b, iterations, residual = solve_system(system, x0, method=self.settings.solver,
+                                               tol=self.settings.solver_tolerance,
+                                               max_iterations=self.settings.max_iterations)
         self.timing["solve"] += time.perf_counter() - t
-        return out
+        # radiosity is never negative; Krylov round-off leaves ~1e-8 below zero on unlit leaves
+        return np.maximum(b, 0.0), iterations, residual
+
+    def _link_matrix(self) -> sp.csr_matrix:
+        """(N, N) form factors; cluster links spread over the patches their samples saw."""
+        n = len(self.elements)
+        cluster = self.elements.is_cluster(self.links.src)
+        if not cluster.any():
+            return self.links.matrix(n)
+        from .visibility import cluster_link_entries
+
+        t = time.perf_counter()
+        rows, cols, vals = cluster_link_entries(
+            self.scene.mi_scene, self.geometry(), self.clusters, self.links.recv[cluster],
+            self.links.src[cluster], samples=self.settings.samples_per_link,
+            seed=self.settings.seed + 0x10000 * self.stream)
+        self.timing["visibility"] += time.perf_counter() - t
+        plain = self.links.select(~cluster)
+        return sp.csr_matrix((np.concatenate([plain.ff.astype(np.float64), vals]),
+                              (np.concatenate([plain.recv, rows]), np.concatenate([plain.src, cols]))),
+                             shape=(n, n))
 
     def system(self, leaves: np.ndarray) -> LeafSystem:
         e = self.elements
@@ -148,7 +212,7 @@ class Problem:
         pull = sp.diags(1.0 / area) @ push.T.tocsr() @ sp.diags(area[leaves])
         rho = self.rho(leaves)
         emission = self.patch_emission[e.patch[leaves]] + rho * (push @ self.direct)
-        links = self.links.matrix(len(e))
+        links = self._link_matrix()
         # Each link's visibility is estimated on its own, so behind occluders the sampled
         # form factors of one receiver can add up to a little more than 1 (up to ~9 % on the
         # closed Cornell box); scale such rows back to 1 (energy is never created).
@@ -172,6 +236,11 @@ def solve_problem(scene: Scene, settings: Settings):
     prob.timing["link"] += time.perf_counter() - t
     geo = prob.geometry()
     prob.links = prob.evaluate(recv, src, geo)
+    if prob.clusters is not None:
+        # open every cluster that holds an emitter before the first solve, so that solve
+        # (and the error budget taken from it) sees the lights (their links' error is inf)
+        n = len(prob.elements)
+        _refine(prob, np.zeros((n, prob.channels)), np.zeros(n), np.finfo(float).max)
     prob.update_direct(np.arange(len(prob.elements)))
     leaves = prob.elements.leaves
     system = prob.system(leaves)
@@ -215,7 +284,11 @@ def solve_problem(scene: Scene, settings: Settings):
     # the same samples would bias F low (samples that missed a kernel peak both look smooth
     # and under-estimate). Re-evaluating every link with an independent random stream
     # decouples selection from estimation.
-    prob.links = prob.evaluate(prob.links.recv, prob.links.src, prob.geometry(), stream=1)
+    selected = prob.links
+    prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=1)
+    # whether a cluster link was seen at all is judged on both sample sets, so the error
+    # estimate does not swing with which links happen to miss their cluster this time
+    prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
     system = prob.system(leaves)
     b_leaf, iterations, residual = prob.solve(system, b_leaf)
     total_iterations += iterations
@@ -252,6 +325,7 @@ def solve_problem(scene: Scene, settings: Settings):
         "solver_iterations": int(total_iterations),
         "solver_residual": float(residual),
         "refine_passes": passes,
+        "clusters": 0 if prob.clusters is None else int(prob.clusters.count),
         "min_element_area": prob.min_area,
         "capped": bool(capped),
         "features": scene.features,
@@ -287,7 +361,41 @@ def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray,
     else:
         receiver = area * links.ff_std * rho_b / np.sqrt(prob.settings.samples_per_link)
     source = area * prob.rho_max[links.recv] * links.ff * spread[links.src]
+    # A cluster source is estimated by Monte Carlo and its sampled spread (above) is that
+    # estimate's error; but where no sample saw any of it, the spread says nothing and a
+    # bound stands in: the form factor of the cluster's bounding sphere (zero when its box
+    # lies behind the receiver's plane) times the brightest radiosity below it
+    # (Smits-Arvo-Greenberg style).
+    cluster = prob.elements.is_cluster(links.src)
+    if cluster.any():
+        # a cluster holding an emitter is always opened (RenderPark does the same): its few
+        # area-sampled points would rarely land on the light that dominates the transfer
+        lit = np.flatnonzero(cluster)[prob.cluster_emits[links.src[cluster] - prob.elements.first_cluster]]
+        receiver[lit] = np.inf
+    blind = np.flatnonzero(cluster & (links.ff_max <= 0))
+    if len(blind):
+        recv, src = links.recv[blind], links.src[blind]
+        bound = cluster_form_factor_bound(prob, recv, src)
+        receiver[blind] = area[blind] * prob.rho_max[recv] * bound * prob.b_max_below[src]
     return receiver, source
+
+
+def cluster_form_factor_bound(prob: Problem, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) upper bound of the form factor from receiver elements to source clusters.
+
+    The bounding sphere's form factor, and zero when the cluster's box lies behind (or in)
+    the receiver's plane.
+    """
+    from .cluster import box_corners, sphere_form_factor_bound
+
+    rc, rr = prob.bounding_spheres(recv)
+    sc, sr = prob.bounding_spheres(src)
+    bound = sphere_form_factor_bound(rc, rr, sc, sr)
+    k = src - prob.elements.first_cluster
+    corners = box_corners(prob.cluster_lo[k], prob.cluster_hi[k])                  # (M, 8, 3)
+    origin = prob.elements.verts[recv, 0]
+    height = np.einsum("mkc,mc->mk", corners - origin[:, None], prob.normals(recv)).max(axis=1)
+    return np.where(height > PLANE_EPS * prob.diagonal, bound, 0.0)
 
 
 def _max_rho_b(prob: Problem, links: Links, b_elem: np.ndarray) -> np.ndarray:
@@ -337,6 +445,9 @@ def _radiosity_spread(prob: Problem, system: LeafSystem, b_elem: np.ndarray) -> 
     b_leaf = b_elem[prob.elements.leaves]
     deviation = np.abs(b_leaf[pull.col] - b_elem[pull.row]).max(axis=1)
     measured = np.bincount(pull.row, weights=pull.data * deviation, minlength=len(prob.elements))
+    # brightest leaf below each element (cluster links' bounds)
+    prob.b_max_below = np.zeros(len(prob.elements))
+    np.maximum.at(prob.b_max_below, pull.row, b_leaf[pull.col].max(axis=1))
     return np.maximum(measured, estimated)
 
 
@@ -351,10 +462,10 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         fresh = np.arange(checked, len(links))
         recv, src = links.recv[fresh], links.src[fresh]
         error, source_error = link_power_errors(prob, links.select(fresh), b_elem, spread)
-        can_split = e.area > prob.min_area
+        can_split = (e.area > prob.min_area) | e.is_cluster(np.arange(len(e)))  # clusters always open
         split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],
                                               can_split[recv], can_split[src],
-                                              prefer_source=source_error > error)
+                                              prefer_source=(source_error > error) | e.is_cluster(src))
         if not (split_src.any() or split_recv.any()):
             break
         if len(e) >= prob.settings.max_elements:
@@ -387,7 +498,12 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         # children of facing pairs: evaluate them all and drop the ones no sample point sees
         # (cheaper than a geometric facing test on every new pair)
         new_links = prob.evaluate(new_recv, new_src, prob.geometry())
-        new_links = new_links.select(new_links.ff_max > 0)
+        # (a cluster no sample saw is kept unless it lies wholly behind the receiver's plane)
+        blind = np.flatnonzero((new_links.ff_max <= 0) & e.is_cluster(new_links.src))
+        keep_new = new_links.ff_max > 0
+        if len(blind):
+            keep_new[blind] = cluster_form_factor_bound(prob, new_links.recv[blind], new_links.src[blind]) > 0
+        new_links = new_links.select(keep_new)
         kept = links.select(keep)
         checked = len(kept)
         prob.links = kept.extend(new_links)

@@ -167,14 +167,27 @@ class LinkWave:
 
 
 def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *,
-                   samples: int, seed: int) -> LinkWave:
+                   samples: int, seed: int, clusters=None) -> LinkWave:
     """Form factor, visibility and kernel statistics of links recv <- src.
 
     Parameters
     ----------
     recv, src : (M,) int element ids
     samples : receiver points (and shadow rays) per link
+    clusters : cluster.ClusterGeometry or None (sources with ids in its range are clusters)
     """
+    if clusters is not None:
+        is_cluster = (src >= clusters.first) & (src < clusters.first + clusters.count)
+        if is_cluster.any():
+            parts = [np.flatnonzero(~is_cluster), np.flatnonzero(is_cluster)]
+            waves = [evaluate_links(mi_scene, geo, recv[parts[0]], src[parts[0]], samples=samples, seed=seed),
+                     _evaluate_cluster_links(mi_scene, geo, clusters, recv[parts[1]], src[parts[1]],
+                                             samples, seed)]
+            out = [np.zeros(len(recv), np.float32) for _ in range(5)]
+            for part, wave in zip(parts, waves):
+                for o, arr in zip(out, (wave.ff, wave.ff_max, wave.vis, wave.ff_std, wave.ff_range)):
+                    o[part] = arr
+            return LinkWave(*out, waves[0].rays + waves[1].rays)
     m = len(recv)
     out = [np.zeros(m, np.float64) for _ in range(5)]
     rays = 0
@@ -262,6 +275,108 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - gvm * gvm, 0.0)
     ff_range = (g_hi.numpy() - g_lo.numpy()).astype(np.float64)
     return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, int(round(float(traced[0])))
+
+
+def _evaluate_cluster_links(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: int) -> LinkWave:
+    m = len(recv)
+    out = [np.zeros(m, np.float64) for _ in range(5)]
+    rays = 0
+    per_launch = max(1, MAX_LANES // n)
+    for start in range(0, m, per_launch):
+        stop = min(m, start + per_launch)
+        res = _cluster_kernel(mi_scene, geo, clusters, recv[start:stop], src[start:stop], n, seed)
+        for o, r in zip(out, res[:5]):
+            o[start:stop] = r
+        rays += res[5]
+    return LinkWave(*(o.astype(np.float32) for o in out), rays)
+
+
+def cluster_link_entries(mi_scene, geo: Geometry, clusters, recv, src, *, samples: int,
+                         seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Matrix entries of cluster links: (rows = receivers, columns = sampled patches, weights).
+
+    Each link recv <- cluster spreads its form factor over the patches its samples drew,
+    weight g v / n each (the same samples as ``evaluate_links`` with the same seed), so the
+    transfer uses the radiosity of the patches it actually sees rather than the cluster's
+    mean: a downward-facing light inside a cluster adds nothing to the ceiling.
+    """
+    rows, cols, vals = [], [], []
+    per_launch = max(1, MAX_LANES // samples)
+    for start in range(0, len(recv), per_launch):
+        stop = min(len(recv), start + per_launch)
+        patch, weight = _cluster_kernel(mi_scene, geo, clusters, recv[start:stop], src[start:stop],
+                                        samples, seed, lanes_out=True)
+        keep = weight > 0
+        rows.append(np.repeat(recv[start:stop], samples)[keep])
+        cols.append(patch[keep])
+        vals.append(weight[keep])
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(rows), np.concatenate(cols).astype(np.int64), np.concatenate(vals).astype(np.float64)
+
+
+def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: int, lanes_out: bool = False):
+    """Links receiver element <- cluster: Monte Carlo over point pairs (see cluster.py)."""
+    m = len(recv)
+    recv_dr = mi.UInt32(np.ascontiguousarray(recv, dtype=np.uint32))
+    cl_dr = mi.UInt32(np.ascontiguousarray(src - clusters.first, dtype=np.uint32))
+    lane = dr.arange(mi.UInt32, m * n)
+    link = lane // n
+    k = lane % n
+    r = dr.gather(mi.UInt32, recv_dr, link)
+    c = dr.gather(mi.UInt32, cl_dr, link)
+
+    # --- receiver points exactly as for element sources; source points by area ----------
+    rv0, rv1, rv2, rn, rc, ra, rr = geo.gather(r)
+    recv_key = hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x7F4A7C15))
+    ur, vr = shifted_hammersley(k, n, recv_key)
+    x = triangle_point(rv0, rv1, rv2, ur, vr)
+    lane_key = hash_u32(hash_u32(recv_key + c * 0x9E3779B9) + k * 0x632BE5AB)
+    us, vs = stratified((k * _coprime_step(n) + 3) % n, n, hash_u32(lane_key ^ 0x1B873593))
+    patch = clusters.sample_patch(c, to_unit(hash_u32(lane_key ^ 0x2C1B3C6D)))
+    sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(patch)
+    y = triangle_point(sv0, sv1, sv2, us, vs)
+    a_patch = dr.norm(dr.cross(sv1 - sv0, sv2 - sv0)) * 0.5
+    a_cluster = dr.gather(mi.Float, clusters.area, c)
+
+    # --- per pair: disc estimate of the drawn patch / its selection probability ----------
+    xs, xn = project_to_surface(x, rn, rc, ra, rr)
+    ys, yn = project_to_surface(y, sn, sc, sa, sr)
+    o = xs + xn * geo.offset
+    d = ys + yn * geo.offset - o
+    dist2 = dr.squared_norm(d)
+    dist = dr.sqrt(dist2)
+    cos_x = dr.dot(d, rn) / dr.select(dist > 0, dist, 1.0)
+    cos_y = -dr.dot(d, sn) / dr.select(dist > 0, dist, 1.0)
+    # Lambert's form factor to the drawn patch over the probability of drawing it (its area
+    # share): unbiased for the cluster's form factor, and bounded however close the patch is
+    front = dr.dot(sn, x - sv0) > 0
+    f_patch = dr.select(front, point_to_triangle_dr(x, rn, sv0, sv1, sv2), 0.0)
+    active = (dist > 0) & (cos_x > 0) & (cos_y > 0) & (f_patch > 0)
+    g = dr.select(active, f_patch * a_cluster / dr.maximum(a_patch, 1e-30), 0.0)
+    ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
+    ray.maxt = dist * (1 - 1e-4)
+    blocked = mi_scene.ray_test(ray, active)
+    v = dr.select(active & ~blocked, 1.0, 0.0)
+    gv = g * v
+    if lanes_out:
+        dr.eval(patch, gv)
+        return patch.numpy(), gv.numpy() * (1.0 / n)
+    lanes = [g, gv, gv * gv, dr.select(active, 1.0, 0.0)]
+    dr.eval(*lanes)
+    g_sum, gv_sum, sq_sum = (dr.block_sum(x_, n) for x_ in lanes[:3])
+    g_max = dr.block_reduce(dr.ReduceOp.Max, g, n)
+    g_min = dr.block_reduce(dr.ReduceOp.Min, g, n)
+    traced = dr.sum(lanes[3])
+    dr.eval(g_sum, gv_sum, sq_sum, g_max, g_min, traced)
+    inv_n = 1.0 / n
+    gs = g_sum.numpy().astype(np.float64)
+    gvs = gv_sum.numpy().astype(np.float64)
+    ff = gvs * inv_n
+    vis = np.where(gs > 0, gvs / np.where(gs > 0, gs, 1.0), 1.0)
+    var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - ff * ff, 0.0)
+    ff_range = (g_max.numpy() - g_min.numpy()).astype(np.float64)
+    return ff, g_max.numpy(), vis, np.sqrt(var), ff_range, int(round(float(traced[0])))
 
 
 # ------------------------------------------------------------------------------------------
