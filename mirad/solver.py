@@ -236,11 +236,7 @@ def solve_problem(scene: Scene, settings: Settings):
     prob.timing["link"] += time.perf_counter() - t
     geo = prob.geometry()
     prob.links = prob.evaluate(recv, src, geo)
-    if prob.clusters is not None:
-        # open every cluster that holds an emitter before the first solve, so that solve
-        # (and the error budget taken from it) sees the lights (their links' error is inf)
-        n = len(prob.elements)
-        _refine(prob, np.zeros((n, prob.channels)), np.zeros(n), np.finfo(float).max)
+    _open_lit_clusters(prob)
     prob.update_direct(np.arange(len(prob.elements)))
     leaves = prob.elements.leaves
     system = prob.system(leaves)
@@ -284,6 +280,8 @@ def solve_problem(scene: Scene, settings: Settings):
     # the same samples would bias F low (samples that missed a kernel peak both look smooth
     # and under-estimate). Re-evaluating every link with an independent random stream
     # decouples selection from estimation.
+    if _open_lit_clusters(prob):
+        leaves = prob.elements.leaves
     selected = prob.links
     prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=1)
     # whether a cluster link was seen at all is judged on both sample sets, so the error
@@ -366,17 +364,22 @@ def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray,
     # bound stands in: the form factor of the cluster's bounding sphere (zero when its box
     # lies behind the receiver's plane) times the brightest radiosity below it
     # (Smits-Arvo-Greenberg style).
+    # A cluster source is estimated by Monte Carlo and its sampled spread (above) is that
+    # estimate's error; but where no sample saw any of it, the spread says nothing and a
+    # bound stands in: the form factor of the cluster's bounding sphere (zero when its box
+    # lies behind the receiver's plane) times the brightest radiosity below it
+    # (Smits-Arvo-Greenberg style).
     cluster = prob.elements.is_cluster(links.src)
-    if cluster.any():
-        # a cluster holding an emitter is always opened (RenderPark does the same): its few
-        # area-sampled points would rarely land on the light that dominates the transfer
-        lit = np.flatnonzero(cluster)[prob.cluster_emits[links.src[cluster] - prob.elements.first_cluster]]
-        receiver[lit] = np.inf
     blind = np.flatnonzero(cluster & (links.ff_max <= 0))
     if len(blind):
         recv, src = links.recv[blind], links.src[blind]
         bound = cluster_form_factor_bound(prob, recv, src)
         receiver[blind] = area[blind] * prob.rho_max[recv] * bound * prob.b_max_below[src]
+    if cluster.any():
+        # a cluster holding an emitter is always opened (RenderPark does the same), seen or
+        # not: its few area-drawn points would rarely land on the light that dominates
+        lit = np.flatnonzero(cluster)[prob.cluster_emits[links.src[cluster] - prob.elements.first_cluster]]
+        receiver[lit] = np.inf
     return receiver, source
 
 
@@ -422,6 +425,20 @@ def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: flo
     receiver, source = link_power_errors(prob, prob.links, b_elem, spread)
     total = float(receiver.sum() + source.sum())
     return ESTIMATE_CALIBRATION * total / max(prob.total_area * b_mean, 1e-300)
+
+
+def _open_lit_clusters(prob: Problem) -> bool:
+    """Open every cluster link whose cluster holds an emitter (their error is inf).
+
+    Done before the first solve, so that solve (and the error budget taken from it) sees
+    the lights, and again before the final estimate. Returns whether anything was opened.
+    """
+    if prob.clusters is None:
+        return False
+    n = len(prob.elements)
+    before = len(prob.links)
+    refined, _ = _refine(prob, np.zeros((n, prob.channels)), np.zeros(n), np.finfo(float).max)
+    return refined or len(prob.links) != before
 
 
 def _mean_radiosity(b_leaf: np.ndarray, area: np.ndarray) -> float:
