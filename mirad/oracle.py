@@ -1,60 +1,21 @@
 """Refinement oracles: decide per link whether to keep it or split one of its ends.
 
-Kernel oracle (default; Bekaert-Willems 96 style, THEORY O4): refine link p <- q while
+The per-link errors (watts, compared against a share of the error budget) are computed
+by ``solver.link_power_errors``:
 
-    rho_p * B_q * std_k[G(x_k) v_k] > eps,
+* ``kernel`` (default): A_p * rho_p * B_q * std_k[G(x_k) v_k] / sqrt(n), the sampling
+  error of the link's form factor from its n receiver points, plus the source term
+  A_p * rho_p * F_pq * spread_q (the link carries the source's mean radiosity);
+* ``bf`` (Hanrahan-Salzman-Aupperle 91, power form): A_p * rho_p * B_q * F_hat_pq, with
+  F_hat the largest unoccluded point-to-source form factor over the receiver samples,
+  plus the same source term.
 
-where G(x_k) v_k are the sampled point-to-source form factors (visibility
-included) at the link's receiver points. The spread of the kernel over the
-receiver is what a constant-per-element link gets wrong: it sees 1/r^2 variation
-near contact, shadow boundaries, and the far-field/near-field mismatch that makes
-coarse links over-light elements next to a corner.
-
-BF oracle (Hanrahan-Salzman-Aupperle 91): refine link p <- q while
-
-    rho_p * B_q * F_hat_pq > eps,
-
-with F_hat the largest unoccluded point-to-source form factor over the link's
-receiver samples (a bounded estimate: <= 1 even for touching elements). The end
-with the larger area is split (it subtends the larger solid angle), unless it is
-already at the minimum element area.
+Here: which end of a link over the threshold to split.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-
-def bf_error(ff_max: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
-    """(M,) BF link error, W/m^2: max over channels of rho_p * B_q, times F_hat."""
-    return ff_max.astype(np.float64) * np.max(rho_recv * b_src, axis=1)
-
-
-ORACLES = ("kernel", "bf")
-
-
-def link_error(oracle: str, links, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
-    """(M,) error of each link under the named oracle, W/m^2."""
-    if oracle == "bf":
-        return bf_error(links.ff_max, rho_recv, b_src)
-    if oracle == "kernel":
-        return kernel_error(np.maximum(links.ff_std, 0.5 * links.ff_range * links.vis), rho_recv, b_src)
-    raise ValueError(f"unknown oracle {oracle!r}; choose one of {', '.join(ORACLES)}")
-
-
-def kernel_error(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
-    """(M,) kernel-variation link error, W/m^2: max over channels of rho_p * B_q, times std_k(G v)."""
-    return ff_std.astype(np.float64) * np.max(rho_recv * b_src, axis=1)
-
-
-def link_uncertainty(ff_std: np.ndarray, rho_recv: np.ndarray, b_src: np.ndarray) -> np.ndarray:
-    """(M,) practical error of a link's transfer, W/m^2: rho_p * B_q * std of the sampled kernel.
-
-    The kernel's spread over the receiver measures both the representation error
-    (irradiance varies over the element but is stored as one value) and the
-    quadrature/visibility sampling error.
-    """
-    return ff_std.astype(np.float64) * np.mean(rho_recv * b_src, axis=1)
 
 
 def choose_splits(error: np.ndarray, eps: float, area_recv: np.ndarray, area_src: np.ndarray,

@@ -180,21 +180,28 @@ def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *
         is_cluster = (src >= clusters.first) & (src < clusters.first + clusters.count)
         if is_cluster.any():
             parts = [np.flatnonzero(~is_cluster), np.flatnonzero(is_cluster)]
-            waves = [evaluate_links(mi_scene, geo, recv[parts[0]], src[parts[0]], samples=samples, seed=seed),
-                     _evaluate_cluster_links(mi_scene, geo, clusters, recv[parts[1]], src[parts[1]],
-                                             samples, seed)]
+            waves = [_in_launches(lambda r, s: _link_kernel(mi_scene, geo, r, s, samples, seed),
+                                  recv[parts[0]], src[parts[0]], samples),
+                     _in_launches(lambda r, s: _cluster_kernel(mi_scene, geo, clusters, r, s, samples, seed),
+                                  recv[parts[1]], src[parts[1]], samples)]
             out = [np.zeros(len(recv), np.float32) for _ in range(5)]
             for part, wave in zip(parts, waves):
                 for o, arr in zip(out, (wave.ff, wave.ff_max, wave.vis, wave.ff_std, wave.ff_range)):
                     o[part] = arr
             return LinkWave(*out, waves[0].rays + waves[1].rays)
+    return _in_launches(lambda r, s: _link_kernel(mi_scene, geo, r, s, samples, seed), recv, src, samples)
+
+
+def _in_launches(kernel, recv, src, samples: int) -> LinkWave:
+    """Run kernel(recv, src) -> (ff, ff_max, vis, ff_std, ff_range, rays) in launches of at most
+    MAX_LANES lanes and gather the per-link results."""
     m = len(recv)
     out = [np.zeros(m, np.float64) for _ in range(5)]
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, m, per_launch):
         stop = min(m, start + per_launch)
-        res = _link_kernel(mi_scene, geo, recv[start:stop], src[start:stop], samples, seed)
+        res = kernel(recv[start:stop], src[start:stop])
         for o, r in zip(out, res[:5]):
             o[start:stop] = r
         rays += res[5]
@@ -275,20 +282,6 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - gvm * gvm, 0.0)
     ff_range = (g_hi.numpy() - g_lo.numpy()).astype(np.float64)
     return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, int(round(float(traced[0])))
-
-
-def _evaluate_cluster_links(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: int) -> LinkWave:
-    m = len(recv)
-    out = [np.zeros(m, np.float64) for _ in range(5)]
-    rays = 0
-    per_launch = max(1, MAX_LANES // n)
-    for start in range(0, m, per_launch):
-        stop = min(m, start + per_launch)
-        res = _cluster_kernel(mi_scene, geo, clusters, recv[start:stop], src[start:stop], n, seed)
-        for o, r in zip(out, res[:5]):
-            o[start:stop] = r
-        rays += res[5]
-    return LinkWave(*(o.astype(np.float32) for o in out), rays)
 
 
 def cluster_link_entries(mi_scene, geo: Geometry, clusters, recv, src, *, samples: int,
