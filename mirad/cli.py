@@ -82,6 +82,12 @@ def _info(args) -> int:
     print(f"  direct-light pass for point/spot/directional/environment lights: "
           f"{'on' if features['direct_light_pass'] else 'off'}")
     print(f"  curved surfaces projected for visibility: {features['curved_shapes']} triangles")
+    from mirad.settings import Settings
+
+    patches = len(scene.patch_tri)
+    threshold = Settings().cluster_threshold
+    print(f"  clusters of patches as link sources (clustering='auto'): "
+          f"{'on' if patches > threshold else 'off'} ({patches} patches, threshold {threshold})")
     if features["non_diffuse_approximated"]:
         print(f"  non-diffuse BSDFs approximated by their albedo: {features['non_diffuse_approximated']}")
     if features["dropped_zero_area_triangles"]:
