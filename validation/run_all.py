@@ -96,8 +96,8 @@ def where_time_goes(result) -> str:
             f"{best['seconds']:.1f} s wall clock, solver total {total:.1f} s) has phase timings "
             f"(`sol.stats['seconds']`) {', '.join(parts) or 'none'}; 'visibility' counts every link-evaluation "
             f"wave (the initial linking's and those inside 'refine'); {best['leaves'] or 0:,} leaves, "
-            f"{best['links'] or 0:,} links ({links_per_leaf:.0f} per leaf: every input triangle starts linked to "
-            f"every other, there is no clustering yet), {best['rays'] or 0:,} rays."
+            f"{best['links'] or 0:,} links ({links_per_leaf:.0f} per leaf: links sit on receiver leaves, so each "
+            f"leaf holds its own cut of the sources), {best['rays'] or 0:,} rays."
             if isinstance(total, (int, float)) else f"phase timings: {', '.join(parts)}")
 
 
