@@ -21,10 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import math
-import os
-import platform
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +32,8 @@ import numpy as np  # noqa: E402
 
 import mirad  # noqa: E402  (sets up LLVM before mitsuba/drjit are imported)
 from mirad.reference import triangle_reference  # noqa: E402
+from mirad.solution import atomic_write  # noqa: E402
+from mirad.validate import machine  # noqa: E402
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -219,32 +218,11 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def machine() -> str:
-    cpu = platform.processor() or ""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu or platform.machine()}, {os.cpu_count()} cores ({platform.system()} {platform.release()})"
-
-
 def record(section: str) -> None:
     """Append ``section`` to RESULTS.md (header created if missing), atomically."""
     text = RESULTS.read_text() if RESULTS.exists() else HEADER
     text = text.rstrip("\n") + "\n\n" + section.rstrip("\n") + "\n"
-    fd, tmp = tempfile.mkstemp(dir=RESULTS.parent, prefix=".RESULTS.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, RESULTS)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(RESULTS, lambda handle: handle.write(text.encode()))
 
 
 def main(argv=None) -> int:

@@ -159,15 +159,7 @@ def record(results: list, stamp: str, budget: str) -> None:
              "seconds / mirad seconds at equal error (log-log interpolation)", "", summary_table(results), ""]
     text = RESULTS.read_text() if RESULTS.exists() else "# mirad benchmark results\n"
     text = text.rstrip("\n") + "\n\n" + "\n".join(lines).rstrip("\n") + "\n"
-    fd, tmp = tempfile.mkstemp(dir=RESULTS.parent, prefix=".RESULTS.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, RESULTS)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(RESULTS, lambda handle: handle.write(text.encode()))
 
 
 #: A child whose resident memory passes this fraction of the machine's stops itself (exit status
