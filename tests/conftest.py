@@ -65,3 +65,12 @@ def cornell():
 
 def area_mean(values: np.ndarray, area: np.ndarray) -> np.ndarray:
     return (values * area[:, None]).sum(0) / area.sum()
+
+
+def run_cli(*args, cwd=None):
+    """Run ``mirad ARGS`` in a subprocess (text output, 300 s limit)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "mirad.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=300)

@@ -1,21 +1,16 @@
 """CLI end to end, bad input (clear message, non-zero exit, no traceback, nothing written)."""
 
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import trimesh
 
 import mirad
-from conftest import SCENES
+from conftest import run_cli, SCENES
 
 CORNELL = SCENES / "cornell-box" / "scene.xml"
 
 
-def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "mirad.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=300)
 
 
 def test_cli_solve_writes_ply_that_trimesh_reads(tmp_path):

@@ -1,24 +1,19 @@
 """Exports: PLY, per-triangle and per-shape tables, lightmaps, ``mirad export``."""
 
 import csv
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import trimesh
 
 import mirad
-from conftest import CLOSED_FORM_REL, SCENES
+from conftest import run_cli, CLOSED_FORM_REL, SCENES
 from mirad import export
 
 CORNELL = SCENES / "cornell-box" / "scene.xml"
 FURNACE = SCENES / "closed-form" / "furnace.xml"
 
 
-def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "mirad.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")

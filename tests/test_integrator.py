@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import mirad
-from conftest import SCENES
+from conftest import run_cli, SCENES
 
 import drjit as dr
 import mitsuba as mi
@@ -28,9 +28,6 @@ def cornell_xml(integrator: str, *, width=WIDTH, height=HEIGHT, rfilter="box") -
     return text.replace('<rfilter type="gaussian"/>', f'<rfilter type="{rfilter}"/>')
 
 
-def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "mirad.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")

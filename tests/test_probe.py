@@ -1,13 +1,11 @@
 """Probes: irradiance at arbitrary points (sol.irradiance_at) and ``mirad probe``."""
 
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 import mirad
-from conftest import CLOSED_FORM_REL, SCENES
+from conftest import run_cli, CLOSED_FORM_REL, SCENES
 
 import mitsuba as mi
 
@@ -15,9 +13,6 @@ CORNELL = SCENES / "cornell-box" / "scene.xml"
 FURNACE = SCENES / "closed-form" / "furnace.xml"
 
 
-def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "mirad.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")
