@@ -212,6 +212,9 @@ class Links:
     vis : (M,) float32        fraction of unoccluded sample rays
     ff_std : (M,) float32     standard deviation of the sampled kernel (with visibility)
     ff_range : (M,) float32   max - min of the unoccluded kernel over samples and receiver corners
+    ff_lo : (M,) float32      that minimum (so ff_lo + ff_range is the maximum)
+    vclass : (M,) int8        visibility class (shaft.py): 0 partial/unknown, 1 proven visible,
+                              2 proven blocked
     """
 
     recv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -221,8 +224,10 @@ class Links:
     vis: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     ff_std: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     ff_range: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    ff_lo: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    vclass: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
 
-    _FIELDS = ("recv", "src", "ff", "ff_max", "vis", "ff_std", "ff_range")
+    _FIELDS = ("recv", "src", "ff", "ff_max", "vis", "ff_std", "ff_range", "ff_lo", "vclass")
 
     def __len__(self) -> int:
         return len(self.recv)

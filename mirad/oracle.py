@@ -8,14 +8,35 @@ by ``solver.link_power_errors``:
   A_p * rho_p * F_pq * spread_q (the link carries the source's mean radiosity);
 * ``bf`` (Hanrahan-Salzman-Aupperle 91, power form): A_p * rho_p * B_q * F_hat_pq, with
   F_hat the largest unoccluded point-to-source form factor over the receiver samples,
-  plus the same source term.
+  plus the same source term;
+* ``bound`` (lower/upper bounds, LTG93-style): A_p * rho_p * B_q * (F_max - F_min), see
+  ``transfer_bounds``, plus the same source term.
 
-Here: which end of a link over the threshold to split.
+Here: the transfer bounds, and which end of a link over the threshold to split.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def transfer_bounds(links, cluster: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F_min, F_max), each (M,): bounds of each link's form factor with visibility.
+
+    F_max is the largest unoccluded point-to-source form factor over the receiver's sample
+    points and (inset) corners, F_min the smallest when the link is proven fully visible
+    (shaft.py) and 0 otherwise; both 0 when it is proven fully blocked. The visibility
+    classes are proofs; the kernel's extremes are taken over the sample points, so for a
+    kernel peaked between them (a receiver touching its source) they are estimates.
+    The sampled form factor always lies in [F_min, F_max]. Cluster sources get (0, 0)
+    here: the solver bounds them with their bounding sphere.
+    """
+    f_lo = links.ff_lo.astype(np.float64)
+    f_hi = f_lo + links.ff_range
+    visible, blocked = links.vclass == 1, links.vclass == 2
+    f_lo = np.where(visible & ~cluster, f_lo, 0.0)
+    f_hi = np.where(blocked | cluster, 0.0, f_hi)
+    return f_lo, f_hi
 
 
 def choose_splits(error: np.ndarray, eps: float, area_recv: np.ndarray, area_src: np.ndarray,

@@ -21,10 +21,10 @@ from tqdm.auto import tqdm
 from . import _runtime  # noqa: F401
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
-from .oracle import choose_splits
+from .oracle import choose_splits, transfer_bounds
 from .scene import Scene
 from .settings import Settings
-from .visibility import Geometry, evaluate_links
+from .visibility import RAY_OFFSET, Geometry, evaluate_links
 
 #: Corners closer than this fraction of the diagonal to a plane count as in the plane.
 PLANE_EPS = 1e-6
@@ -57,12 +57,20 @@ class Problem:
         tol = settings.tolerance
         self.min_area = max(settings.min_area, (tol * settings.min_area_factor) ** 2) * self.total_area
         self.links = Links()
+        self.culler = None
+        cull = settings.shaft_culling == "on" or (settings.shaft_culling == "auto" and settings.oracle == "bound")
+        if cull and not np.any(scene.curve_radius > 0):
+            from .shaft import ShaftCuller
+
+            self.culler = ShaftCuller(scene.tri_vertices, scene.diagonal)
         self._rho_max = np.zeros(0)
         self.stream = 0
         self.b_max_below = np.zeros(len(self.elements))
         self.rays = 0
         self.direct = np.zeros((len(self.elements), self.channels))   # irradiance from point/sky lights
-        self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "solve": 0.0, "direct": 0.0}
+        self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
+                       "direct": 0.0}
+        self.classified = {"visible": 0, "blocked": 0, "tested": 0}
 
     def _add_clusters(self, verts: np.ndarray) -> None:
         """Bounding-volume hierarchy over the patches, appended as source-only elements."""
@@ -142,17 +150,57 @@ class Problem:
             src_all.append(s[ok])
         return np.concatenate(recv_all).astype(np.int32), np.concatenate(src_all).astype(np.int32)
 
-    def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry, *, stream: int = 0) -> Links:
-        """Evaluate links; ``stream`` selects an independent random sequence."""
+    def evaluate(self, recv: np.ndarray, src: np.ndarray, geo: Geometry, *, stream: int = 0,
+                 vclass: np.ndarray | None = None) -> Links:
+        """Evaluate links; ``stream`` selects an independent random sequence.
+
+        ``vclass`` holds classes inherited from parent links (shaft.py); links still unknown
+        are tested for full visibility first and, when every sampled ray was blocked, for
+        full blockage.
+        """
+        vclass = np.zeros(len(recv), np.int8) if vclass is None else vclass.astype(np.int8)
+        unknown = self._unknown(src, vclass)
+        if len(unknown):
+            vclass[unknown[self._prove(recv[unknown], src[unknown], visible=True)]] = 1
         t = time.perf_counter()
         self.stream = stream
         seed = self.settings.seed + 0x10000 * stream
         wave = evaluate_links(self.scene.mi_scene, geo, recv, src,
-                              samples=self.settings.samples_per_link, seed=seed, clusters=self.clusters)
+                              samples=self.settings.samples_per_link, seed=seed, clusters=self.clusters,
+                              vclass=vclass)
         self.timing["visibility"] += time.perf_counter() - t
         self.rays += wave.rays
+        dark = self._unknown(src, vclass)
+        dark = dark[wave.vis[dark] <= 0]
+        if len(dark):
+            vclass[dark[self._prove(recv[dark], src[dark], visible=False)]] = 2
         return Links(recv.astype(np.int32), src.astype(np.int32), wave.ff, wave.ff_max, wave.vis,
-                     wave.ff_std, wave.ff_range)
+                     wave.ff_std, wave.ff_range, wave.ff_lo, vclass)
+
+    def _unknown(self, src: np.ndarray, vclass: np.ndarray) -> np.ndarray:
+        """Indices of links whose visibility could still be proven (element sources, class 0)."""
+        if self.culler is None:
+            return np.zeros(0, np.int64)
+        return np.flatnonzero((vclass == 0) & ~self.elements.is_cluster(src))
+
+    def _prove(self, recv: np.ndarray, src: np.ndarray, *, visible: bool) -> np.ndarray:
+        """(M,) bool: links proven fully visible (visible=True) or fully blocked (see shaft.py)."""
+        from .shaft import lift, prove_blocked
+
+        t = time.perf_counter()
+        e = self.elements
+        offset = RAY_OFFSET * self.diagonal
+        r = lift(e.verts[recv], self.normals(recv), offset)
+        s = lift(e.verts[src], self.normals(src), offset)
+        if visible:
+            tri = self.scene.patch_tri
+            proven = self.culler.visible(r, s, tri[e.patch[recv]], tri[e.patch[src]])
+        else:
+            proven = prove_blocked(self.scene.mi_scene, r, s, self.culler.tol)
+        self.classified["tested"] += len(recv)
+        self.classified["visible" if visible else "blocked"] += int(proven.sum())
+        self.timing["classify"] += time.perf_counter() - t
+        return proven
 
     # --- direct light from non-area emitters ------------------------------------------------
     def update_direct(self, ids: np.ndarray) -> None:
@@ -256,7 +304,7 @@ def solve_problem(scene: Scene, settings: Settings):
     for level in range(settings.max_refine_passes):
         b_elem = system.pull @ b_leaf
         b_mean = _reflected_mean(prob, leaves, b_leaf)
-        budget = settings.tolerance / ESTIMATE_CALIBRATION * b_mean * prob.total_area
+        budget = settings.tolerance / _error_scale(prob) * b_mean * prob.total_area
         spread = _radiosity_spread(prob, system, b_elem)
         estimated = _estimate(prob, b_elem, spread, b_mean)
         if estimated <= settings.tolerance:
@@ -283,7 +331,8 @@ def solve_problem(scene: Scene, settings: Settings):
     if _open_lit_clusters(prob):
         leaves = prob.elements.leaves
     selected = prob.links
-    prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=1)
+    prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=1,
+                               vclass=selected.vclass)
     # whether a cluster link was seen at all is judged on both sample sets, so the error
     # estimate does not swing with which links happen to miss their cluster this time
     prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
@@ -307,7 +356,8 @@ def solve_problem(scene: Scene, settings: Settings):
     estimated = _estimate(prob, b_elem, spread, reflected_mean)
     # the same error over the mean of B itself (emission included): the validation metric's norm
     estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
-    per_link = sum(link_power_errors(prob, prob.links, b_elem, spread))
+    per_link = sum(link_power_errors(prob, prob.links, b_elem, spread,
+                                     "bound" if settings.oracle == "bound" else "kernel"))
     per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
     err_leaf = system.push @ (per_elem / prob.elements.area)
     prob.timing["total"] = time.perf_counter() - t_start
@@ -319,6 +369,9 @@ def solve_problem(scene: Scene, settings: Settings):
         "seconds": {k: round(v, 4) for k, v in prob.timing.items()},
         "estimated_error": estimated,
         "estimated_error_of_mean": estimated_of_mean,
+        "error_bound": _error_bound(prob, b_elem, spread, reflected_mean),
+        "oracle": settings.oracle,
+        "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
         "solver": settings.solver,
         "solver_iterations": int(total_iterations),
         "solver_residual": float(residual),
@@ -340,37 +393,38 @@ def solve_problem(scene: Scene, settings: Settings):
 ESTIMATE_CALIBRATION = 0.13
 
 
-def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray,
-                      spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray, spread: np.ndarray,
+                      oracle: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-link error as power (W): (receiver term, source term), each (M,).
 
-    receiver term  A_p * oracle error (W/m^2): for the kernel oracle rho_p * B_q * the spread
-                   of the sampled kernel over the receiver, i.e. how far the link's one value
-                   is from the irradiance it really brings to each point of p;
+    receiver term  A_p * the oracle's error (W/m^2): for ``kernel`` rho_p * B_q * the spread of
+                   the sampled kernel over the receiver, i.e. how far the link's one value is
+                   from the irradiance it really brings to each point of p; for ``bf``
+                   rho_p * B_q * F_hat; for ``bound`` rho_p * B_q * (F_max - F_min) (oracle.py);
     source term    A_p * rho_p * F_pq * spread_q: the link carries the source's mean radiosity,
                    off by the source's own variation.
     Weighting by area makes the sum match the area-weighted error norm, so tiny elements
-    next to a contact edge stop splitting once their share is small.
+    next to a contact edge stop splitting once their share is small. ``oracle`` defaults to
+    the settings' one.
     """
+    oracle = oracle or prob.settings.oracle
     area = prob.elements.area[links.recv]
     rho_b = _max_rho_b(prob, links, b_elem)
-    if prob.settings.oracle == "bf":
+    cluster = prob.elements.is_cluster(links.src)
+    if oracle == "bf":
         receiver = area * links.ff_max * rho_b
+    elif oracle == "bound":
+        f_lo, f_hi = transfer_bounds(links, cluster)
+        receiver = area * (f_hi - f_lo) * rho_b
     else:
         receiver = area * links.ff_std * rho_b / np.sqrt(prob.settings.samples_per_link)
     source = area * prob.rho_max[links.recv] * links.ff * spread[links.src]
     # A cluster source is estimated by Monte Carlo and its sampled spread (above) is that
-    # estimate's error; but where no sample saw any of it, the spread says nothing and a
-    # bound stands in: the form factor of the cluster's bounding sphere (zero when its box
+    # estimate's error; but where no sample saw any of it (or for the bound oracle, always),
+    # a bound stands in: the form factor of the cluster's bounding sphere (zero when its box
     # lies behind the receiver's plane) times the brightest radiosity below it
     # (Smits-Arvo-Greenberg style).
-    # A cluster source is estimated by Monte Carlo and its sampled spread (above) is that
-    # estimate's error; but where no sample saw any of it, the spread says nothing and a
-    # bound stands in: the form factor of the cluster's bounding sphere (zero when its box
-    # lies behind the receiver's plane) times the brightest radiosity below it
-    # (Smits-Arvo-Greenberg style).
-    cluster = prob.elements.is_cluster(links.src)
-    blind = np.flatnonzero(cluster & (links.ff_max <= 0))
+    blind = np.flatnonzero(cluster & ((links.ff_max <= 0) | (oracle == "bound")))
     if len(blind):
         recv, src = links.recv[blind], links.src[blind]
         bound = cluster_form_factor_bound(prob, recv, src)
@@ -420,11 +474,36 @@ def _reflected_mean(prob: Problem, leaves: np.ndarray, b_leaf: np.ndarray) -> fl
     return _mean_radiosity(reflected, prob.elements.area[leaves])
 
 
+def _error_scale(prob: Problem) -> float:
+    """Factor from summed link power errors / (A_total * mean reflected B) to the estimate.
+
+    ``bound``: 1 / (1 - rho_max), the amplification of local transfer errors through the
+    solve (THEORY.md section 1), so the estimate is a bound as far as the link bounds are;
+    otherwise the calibration measured against Mitsuba's path tracer.
+    """
+    if prob.settings.oracle == "bound":
+        return 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
+    return ESTIMATE_CALIBRATION
+
+
 def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
-    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity)."""
-    receiver, source = link_power_errors(prob, prob.links, b_elem, spread)
+    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity).
+
+    The ``bf`` oracle refines by its own measure, but its estimate uses the kernel errors
+    (its F_hat says how large a transfer is, not how wrong).
+    """
+    oracle = "bound" if prob.settings.oracle == "bound" else "kernel"
+    receiver, source = link_power_errors(prob, prob.links, b_elem, spread, oracle)
     total = float(receiver.sum() + source.sum())
-    return ESTIMATE_CALIBRATION * total / max(prob.total_area * b_mean, 1e-300)
+    return _error_scale(prob) * total / max(prob.total_area * b_mean, 1e-300)
+
+
+def _error_bound(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
+    """The bound oracle's estimate (see _error_scale), whatever the oracle: loose where links
+    are not classified (their lower bound is 0)."""
+    receiver, source = link_power_errors(prob, prob.links, b_elem, spread, "bound")
+    scale = 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
+    return scale * float(receiver.sum() + source.sum()) / max(prob.total_area * b_mean, 1e-300)
 
 
 def _open_lit_clusters(prob: Problem) -> bool:
@@ -497,8 +576,10 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         prob.update_direct(np.arange(n_before, len(e)))
 
         # links whose source was split go to the source's children ...
+        # (children inherit their parent link's visibility class: their shaft lies inside it)
         owner, child = e.children_pairs(src[split_src])
         new_recv, new_src = recv[split_src][owner], child
+        new_cls = links.vclass[fresh][split_src][owner]
         # ... and every link into a receiver that is no longer a leaf moves to its children:
         # links stay on receiver leaves, so each leaf gathers its whole (hierarchical) source
         # cut at its own sample points and its row sum cannot exceed 1
@@ -508,13 +589,15 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         keep &= ~stale
         pushed_recv = np.concatenate([links.recv[stale], new_recv])
         pushed_src = np.concatenate([links.src[stale], new_src])
+        pushed_cls = np.concatenate([links.vclass[stale], new_cls])
         inner = ~e.is_leaf[pushed_recv]
         owner, child = e.children_pairs(pushed_recv[inner])
         new_recv = np.concatenate([pushed_recv[~inner], child])
         new_src = np.concatenate([pushed_src[~inner], pushed_src[inner][owner]])
+        new_cls = np.concatenate([pushed_cls[~inner], pushed_cls[inner][owner]])
         # children of facing pairs: evaluate them all and drop the ones no sample point sees
         # (cheaper than a geometric facing test on every new pair)
-        new_links = prob.evaluate(new_recv, new_src, prob.geometry())
+        new_links = prob.evaluate(new_recv, new_src, prob.geometry(), vclass=new_cls)
         # (a cluster no sample saw is kept unless it lies wholly behind the receiver's plane)
         blind = np.flatnonzero((new_links.ff_max <= 0) & e.is_cluster(new_links.src))
         keep_new = new_links.ff_max > 0

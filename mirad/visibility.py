@@ -156,18 +156,21 @@ def _coprime_step(n: int) -> int:
 
 @dataclass
 class LinkWave:
-    """Per-link results of one wave (numpy, float32/float64)."""
+    """Per-link results of one wave (numpy, float32): see hierarchy.Links for the fields."""
 
     ff: np.ndarray
     ff_max: np.ndarray
     vis: np.ndarray
     ff_std: np.ndarray
     ff_range: np.ndarray
+    ff_lo: np.ndarray
     rays: int
+
+    FIELDS = ("ff", "ff_max", "vis", "ff_std", "ff_range", "ff_lo")
 
 
 def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *,
-                   samples: int, seed: int, clusters=None) -> LinkWave:
+                   samples: int, seed: int, clusters=None, vclass: np.ndarray | None = None) -> LinkWave:
     """Form factor, visibility and kernel statistics of links recv <- src.
 
     Parameters
@@ -175,48 +178,54 @@ def evaluate_links(mi_scene, geo: Geometry, recv: np.ndarray, src: np.ndarray, *
     recv, src : (M,) int element ids
     samples : receiver points (and shadow rays) per link
     clusters : cluster.ClusterGeometry or None (sources with ids in its range are clusters)
+    vclass : (M,) int8 or None, visibility classes (shaft.py): links proven visible or
+        blocked trace no rays (v = 1 or 0 exactly)
     """
+    if vclass is None:
+        vclass = np.zeros(len(recv), np.int8)
+    element = lambda r, s, c: _link_kernel(mi_scene, geo, r, s, c, samples, seed)  # noqa: E731
     if clusters is not None:
         is_cluster = (src >= clusters.first) & (src < clusters.first + clusters.count)
         if is_cluster.any():
             parts = [np.flatnonzero(~is_cluster), np.flatnonzero(is_cluster)]
-            waves = [_in_launches(lambda r, s: _link_kernel(mi_scene, geo, r, s, samples, seed),
-                                  recv[parts[0]], src[parts[0]], samples),
-                     _in_launches(lambda r, s: _cluster_kernel(mi_scene, geo, clusters, r, s, samples, seed),
-                                  recv[parts[1]], src[parts[1]], samples)]
-            out = [np.zeros(len(recv), np.float32) for _ in range(5)]
+            waves = [_in_launches(element, recv[parts[0]], src[parts[0]], vclass[parts[0]], samples),
+                     _in_launches(lambda r, s, c: _cluster_kernel(mi_scene, geo, clusters, r, s, samples, seed),
+                                  recv[parts[1]], src[parts[1]], vclass[parts[1]], samples)]
+            out = [np.zeros(len(recv), np.float32) for _ in LinkWave.FIELDS]
             for part, wave in zip(parts, waves):
-                for o, arr in zip(out, (wave.ff, wave.ff_max, wave.vis, wave.ff_std, wave.ff_range)):
-                    o[part] = arr
+                for o, name in zip(out, LinkWave.FIELDS):
+                    o[part] = getattr(wave, name)
             return LinkWave(*out, waves[0].rays + waves[1].rays)
-    return _in_launches(lambda r, s: _link_kernel(mi_scene, geo, r, s, samples, seed), recv, src, samples)
+    return _in_launches(element, recv, src, vclass, samples)
 
 
-def _in_launches(kernel, recv, src, samples: int) -> LinkWave:
-    """Run kernel(recv, src) -> (ff, ff_max, vis, ff_std, ff_range, rays) in launches of at most
-    MAX_LANES lanes and gather the per-link results."""
+def _in_launches(kernel, recv, src, vclass, samples: int) -> LinkWave:
+    """Run kernel(recv, src, vclass) -> (ff, ff_max, vis, ff_std, ff_range, ff_lo, rays) in
+    launches of at most MAX_LANES lanes and gather the per-link results."""
     m = len(recv)
-    out = [np.zeros(m, np.float64) for _ in range(5)]
+    out = [np.zeros(m, np.float64) for _ in LinkWave.FIELDS]
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, m, per_launch):
         stop = min(m, start + per_launch)
-        res = kernel(recv[start:stop], src[start:stop])
-        for o, r in zip(out, res[:5]):
+        res = kernel(recv[start:stop], src[start:stop], vclass[start:stop])
+        for o, r in zip(out, res[:-1]):
             o[start:stop] = r
-        rays += res[5]
+        rays += res[-1]
     return LinkWave(*(o.astype(np.float32) for o in out), rays)
 
 
-def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
+def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     m = len(recv)
     recv_dr = mi.UInt32(np.ascontiguousarray(recv, dtype=np.uint32))
     src_dr = mi.UInt32(np.ascontiguousarray(src, dtype=np.uint32))
+    class_dr = mi.UInt32(np.ascontiguousarray(vclass, dtype=np.uint32))
     lane = dr.arange(mi.UInt32, m * n)
     link = lane // n
     k = lane % n
     r = dr.gather(mi.UInt32, recv_dr, link)
     s = dr.gather(mi.UInt32, src_dr, link)
+    cls = dr.gather(mi.UInt32, class_dr, link)
 
     # --- stratified jittered sample points on receiver and source -----------------------
     pair_key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s)
@@ -243,7 +252,8 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     corner = dr.select(k < 3, corner, x)
     g_corner = dr.select(dr.dot(sn, corner - sv0) > 0, point_to_triangle_dr(corner, rn, sv0, sv1, sv2), 0.0)
 
-    # --- one shadow ray per lane, only where the kernel is non-zero ----------------------
+    # --- one shadow ray per lane, only where the kernel is non-zero and the link's --------
+    # visibility is not already proven (shaft.py: 1 visible, 2 blocked)
     xs, xn = project_to_surface(x, rn, rc, ra, rr)
     ys, yn = project_to_surface(y, sn, sc, sa, sr)
     o = xs + xn * geo.offset
@@ -253,7 +263,8 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     active = (g > 0) & (dist > 0) & (dr.dot(d, rn) > 0) & (dr.dot(d, sn) < 0)
     ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
     ray.maxt = dist * (1 - 1e-4)
-    blocked = mi_scene.ray_test(ray, active)
+    traced = active & (cls == 0)
+    blocked = mi_scene.ray_test(ray, traced) | (cls == 2)
     v = dr.select(active & ~blocked, 1.0, 0.0)
     gv = g * v
 
@@ -263,7 +274,7 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     # kernel keeps grazing (nearly irrelevant) blocked rays from darkening the link.
     kernel = dr.select(active, dr.dot(d, rn) * -dr.dot(d, sn) / dr.square(dr.square(dist)), 0.0)
     lanes = [g, kernel, kernel * v, gv, gv * gv, dr.maximum(g, g_corner), dr.minimum(g, g_corner),
-             dr.select(active, 1.0, 0.0)]
+             dr.select(traced, 1.0, 0.0)]
     # One kernel computes every per-lane quantity; the block reductions then read stored
     # arrays. (Reducing unevaluated expressions would re-run the whole wave, shadow rays
     # included, once per reduction.)
@@ -272,8 +283,8 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     ff_max = dr.block_reduce(dr.ReduceOp.Max, g, n)
     g_hi = dr.block_reduce(dr.ReduceOp.Max, lanes[5], n)
     g_lo = dr.block_reduce(dr.ReduceOp.Min, lanes[6], n)
-    traced = dr.sum(lanes[7])
-    dr.eval(g_sum, k_sum, kv_sum, gv_sum, sq_sum, ff_max, g_hi, g_lo, traced)
+    n_traced = dr.sum(lanes[7])
+    dr.eval(g_sum, k_sum, kv_sum, gv_sum, sq_sum, ff_max, g_hi, g_lo, n_traced)
     inv_n = 1.0 / n
     ks = k_sum.numpy().astype(np.float64)
     vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 1.0)
@@ -281,7 +292,8 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, n: int, seed: int):
     gvm = gv_sum.numpy().astype(np.float64) * inv_n
     var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - gvm * gvm, 0.0)
     ff_range = (g_hi.numpy() - g_lo.numpy()).astype(np.float64)
-    return ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, int(round(float(traced[0])))
+    return (ff_np, ff_max.numpy(), vis_np, np.sqrt(var), ff_range, g_lo.numpy(),
+            int(round(float(n_traced[0]))))
 
 
 def cluster_link_entries(mi_scene, geo: Geometry, clusters, recv, src, *, samples: int,
@@ -369,7 +381,7 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
     vis = np.where(gs > 0, gvs / np.where(gs > 0, gs, 1.0), 1.0)
     var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - ff * ff, 0.0)
     ff_range = (g_max.numpy() - g_min.numpy()).astype(np.float64)
-    return ff, g_max.numpy(), vis, np.sqrt(var), ff_range, int(round(float(traced[0])))
+    return ff, g_max.numpy(), vis, np.sqrt(var), ff_range, g_min.numpy(), int(round(float(traced[0])))
 
 
 # ------------------------------------------------------------------------------------------
