@@ -39,17 +39,20 @@ def write_ply(solution, path) -> Path:
 
     Vertex properties: ``red, green, blue, alpha`` (8-bit sRGB display colours of B/pi, the 99th
     percentile mapped to white), ``radiosity_r/g/b`` and ``irradiance_r/g/b`` (float32, W/m^2,
-    area-weighted over the triangles around each vertex, front side).
+    area-weighted over the triangles around each vertex, front side) and ``error_r/g/b`` (the
+    estimated error map of the radiosity, W/m^2, see ``Solution.triangle_error``).
     """
     import trimesh
 
     b = solution.vertex_radiosity
     h = _vertex_mean(solution, solution.triangle_irradiance)
+    err = _vertex_mean(solution, solution.triangle_error)
     mesh = trimesh.Trimesh(vertices=solution.vertices, faces=solution.faces, process=False)
     mesh.visual.vertex_colors = display_colors(b)
     for c, name in enumerate(_CHANNELS[: b.shape[1]]):
         mesh.vertex_attributes[f"radiosity_{name}"] = b[:, c].astype(np.float32)
         mesh.vertex_attributes[f"irradiance_{name}"] = h[:, c].astype(np.float32)
+        mesh.vertex_attributes[f"error_{name}"] = err[:, c].astype(np.float32)
     data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
     path = Path(path)
     atomic_write(path, lambda handle: handle.write(data))
@@ -85,7 +88,8 @@ def triangle_table(solution) -> dict:
     ``shape`` (T,) int index into ``shape_ids``; ``shape_id`` (T,) str; ``triangle`` (T,) int global
     index; ``area`` (T,) m^2; ``radiosity``, ``irradiance`` (T, C) W/m^2 (front side);
     ``back_radiosity``, ``back_irradiance`` (T, C) W/m^2 (zero where one-sided);
-    ``absorbed`` (T, C) W = (1 - rho) H A, front plus back.
+    ``absorbed`` (T, C) W = (1 - rho) H A, front plus back; ``error`` (T, C) W/m^2, the
+    estimated error of ``radiosity`` (the error map).
     """
     area = solution.triangle_area
     rho = solution._a["triangle_rho"]
@@ -103,6 +107,7 @@ def triangle_table(solution) -> dict:
         "back_radiosity": solution.back_radiosity,
         "back_irradiance": h_back,
         "absorbed": absorbed,
+        "error": solution.triangle_error,
     }
 
 

@@ -359,7 +359,9 @@ def solve_problem(scene: Scene, settings: Settings):
     per_link = sum(link_power_errors(prob, prob.links, b_elem, spread,
                                      "bound" if settings.oracle == "bound" else "kernel"))
     per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
-    err_leaf = system.push @ (per_elem / prob.elements.area)
+    # per-leaf error map, W/m^2, scaled like the estimate: its area integral over
+    # A_total * mean(B - E) is stats["estimated_error"]
+    err_leaf = _error_scale(prob) * (system.push @ (per_elem / prob.elements.area))
     prob.timing["total"] = time.perf_counter() - t_start
     stats = {
         "elements": int(len(prob.elements)),
