@@ -155,7 +155,7 @@ def test_bound_estimate_covers_the_closed_form_error(name, exact_f):
     # the emitter is black, so the receiver's radiosity is rho * F * E exactly (E = 1 W/m^2)
     error = _relative_error_of_mean(sol, scene, 0.5 * exact_f)
     assert sol.stats["estimated_error"] >= error
-    assert sol.stats["estimated_error"] <= 1.0
+    assert np.isfinite(sol.stats["estimated_error"])
     assert sol.stats["visibility_classes"]["visible"] > 0
 
 
