@@ -24,6 +24,8 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     solve.add_argument("--solver", choices=["gmres", "gauss-seidel", "jacobi"], default=None,
                        help="linear solver (default gmres)")
+    solve.add_argument("--oracle", choices=["kernel", "bf", "bound"], default=None,
+                       help="refinement oracle (default kernel; bound: conservative, estimate is a bound)")
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
 
     sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
@@ -55,7 +57,8 @@ def _solve(args) -> int:
 
     _check_output(args.output, (".ply", ".npz"))
     sol = mirad.solve(args.scene, tolerance=args.tolerance, samples_per_link=args.samples_per_link,
-                      seed=args.seed, solver=args.solver, variant=args.variant, quiet=args.quiet)
+                      seed=args.seed, solver=args.solver, oracle=args.oracle, variant=args.variant,
+                      quiet=args.quiet)
     sol.save(args.output)
     if args.stats:
         text = json.dumps(sol.stats, indent=2, default=str).encode()
