@@ -83,6 +83,13 @@ class Settings:
         Mitsuba variant; None picks cuda_ad_rgb with a GPU, else llvm_ad_rgb.
     quiet : bool, default False
         No progress bars.
+    workers : int, default 0
+        Run the visibility waves on a Dask ``LocalCluster`` of this many worker processes
+        (mirad/distributed.py); 0: in this process. Results are bitwise the same. Needs a
+        scene loaded from a file (workers load it themselves).
+    scheduler : str or None, default None
+        Address of a running Dask scheduler (e.g. "tcp://10.0.0.5:8786") to run the
+        visibility waves on instead of a local cluster; takes precedence over ``workers``.
     """
 
     tolerance: float = 0.03
@@ -102,6 +109,8 @@ class Settings:
     cluster_threshold: int = 256
     variant: str | None = None
     quiet: bool = False
+    workers: int = 0
+    scheduler: str | None = None
 
     def __post_init__(self) -> None:
         if not (0.0 < float(self.tolerance) < 1.0):
@@ -128,6 +137,11 @@ class Settings:
             raise SettingsError(f"min_area={self.min_area!r} must be in (0, 1) (relative to total area)")
         if self.link_error_scale <= 0:
             raise SettingsError(f"link_error_scale={self.link_error_scale!r} must be > 0")
+        if isinstance(self.workers, bool) or int(self.workers) != self.workers or self.workers < 0:
+            raise SettingsError(f"workers={self.workers!r} must be an integer >= 0 (0: no Dask workers)")
+        if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
+            raise SettingsError(f"scheduler={self.scheduler!r} must be a Dask scheduler address such as "
+                                "'tcp://10.0.0.5:8786'")
         if int(self.seed) != self.seed or self.seed < 0:
             raise SettingsError(f"seed={self.seed!r} must be a non-negative integer")
 

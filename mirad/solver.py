@@ -71,6 +71,7 @@ class Problem:
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
+        self._executor = None   # Dask evaluator (distributed.py), made on the first wave
 
     def _add_clusters(self, verts: np.ndarray) -> None:
         """Bounding-volume hierarchy over the patches, appended as source-only elements."""
@@ -165,7 +166,13 @@ class Problem:
         t = time.perf_counter()
         self.stream = stream
         seed = self.settings.seed + 0x10000 * stream
-        wave = evaluate_links(self.scene.mi_scene, geo, recv, src,
+        if (self.settings.workers or self.settings.scheduler) and self._executor is None:
+            from .distributed import DaskEvaluator
+
+            self._executor = DaskEvaluator(self.scene, workers=self.settings.workers,
+                                           scheduler=self.settings.scheduler)
+        run = evaluate_links if self._executor is None else self._executor.evaluate_links
+        wave = run(self.scene.mi_scene, geo, recv, src,
                               samples=self.settings.samples_per_link, seed=seed, clusters=self.clusters,
                               vclass=vclass)
         self.timing["visibility"] += time.perf_counter() - t
@@ -340,6 +347,8 @@ def solve_problem(scene: Scene, settings: Settings):
     b_leaf, iterations, residual = prob.solve(system, b_leaf)
     total_iterations += iterations
     bar.close()
+    if prob._executor is not None:
+        prob._executor.close()
     if capped:
         warnings.warn(f"refinement stopped at max_elements={settings.max_elements}; "
                       "raise it or the tolerance", stacklevel=2)

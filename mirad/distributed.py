@@ -1,0 +1,318 @@
+"""Visibility waves (and path-traced references) on a Dask cluster.
+
+``Settings.workers = N`` starts a ``distributed.LocalCluster`` of N single-threaded worker
+processes on this machine; ``Settings.scheduler = "tcp://host:8786"`` connects to a running
+scheduler instead. Either way each worker
+
+- loads the scene from its file once (``mirad.load_scene``, cached per worker process and
+  keyed by the file's absolute path and the scene fingerprint, checked after loading), so a
+  file that differs on the worker is an error, not a silently different answer;
+- receives the element geometry of a wave as numpy arrays (scattered once per wave, cached
+  per worker by a content hash) and a batch of links (receiver ids, source ids, visibility
+  classes);
+- runs the same fused Dr.Jit kernels as the single-process solver
+  (``visibility.evaluate_links`` on a ``Geometry`` uploaded on the worker).
+
+The kernels draw every random number from a hash of the seed and the element ids of a
+link, so splitting a wave's link list into batches gives bitwise the same per-link results
+as one launch: the solution is identical to the in-process one for a fixed seed
+(tests/test_distributed.py checks it).
+
+A scene handed over as a Mitsuba dict or an ``mi.Scene`` has no file a worker could load:
+those raise ``SettingsError``.
+
+>>> sol = mirad.solve("scenes/cornell-box/scene.xml", workers=2)            # doctest: +SKIP
+>>> sol = mirad.solve("scene.xml", scheduler="tcp://10.0.0.5:8786")         # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
+from .errors import EnvironmentProblem, SettingsError
+
+__all__ = ["DaskEvaluator", "distributed_reference"]
+
+#: Fewest links per batch (smaller waves go out as fewer batches).
+MIN_BATCH = 4096
+#: Batches per worker and wave (a little slack for uneven batches).
+BATCHES_PER_WORKER = 2
+#: Geometries (and cluster trees) kept per worker process.
+_CACHE_DEPTH = 2
+
+# --- per-worker-process caches (module globals live once per worker process) --------------
+_SCENES: dict = {}
+_ARRAYS: dict = {}
+_THREADS_SET = [False]
+
+
+def _require_distributed():
+    try:
+        import distributed  # noqa: F401
+    except ImportError:  # pragma: no cover - dependency missing
+        raise EnvironmentProblem("workers/scheduler need the 'distributed' package; "
+                                 "pip install 'distributed>=2024.1'") from None
+    return distributed
+
+
+def scene_file(scene) -> str:
+    """Absolute path of the file a scene was loaded from; SettingsError when there is none."""
+    if not getattr(scene, "source", None):
+        raise SettingsError("workers/scheduler need a scene file: workers load the scene from its XML file, "
+                            "and a scene given as a Mitsuba dict or an mi.Scene cannot be shipped; "
+                            "save it as XML and pass the path, or drop workers/scheduler")
+    return os.path.abspath(scene.source)
+
+
+@dataclass(frozen=True)
+class _SceneKey:
+    path: str
+    fingerprint: str
+    variant: str
+    threads: int          # Dr.Jit threads per worker process (0: leave Dr.Jit's default)
+
+
+def _worker_scene(key: _SceneKey):
+    """The scene of ``key`` on this worker process, loaded once."""
+    from .errors import SceneError
+    from .scene import load_scene
+
+    if key.threads and not _THREADS_SET[0]:
+        import drjit as dr
+
+        dr.set_thread_count(key.threads)
+        _THREADS_SET[0] = True
+    cache_key = (key.path, key.fingerprint)
+    if cache_key not in _SCENES:
+        scene = load_scene(key.path, variant=key.variant)
+        if scene.fingerprint != key.fingerprint:
+            raise SceneError(f"scene file '{key.path}' on a worker has fingerprint {scene.fingerprint}, "
+                             f"the client's has {key.fingerprint}; give every worker the same file")
+        _SCENES[cache_key] = scene
+    return _SCENES[cache_key]
+
+
+def _cached(token: str, build):
+    """Per-worker cache of uploaded Dr.Jit arrays, keyed by a content hash (last few kept)."""
+    if token not in _ARRAYS:
+        while len(_ARRAYS) >= 2 * _CACHE_DEPTH:
+            _ARRAYS.pop(next(iter(_ARRAYS)))
+        _ARRAYS[token] = build()
+    return _ARRAYS[token]
+
+
+# ------------------------------------------------------------------------------------------
+# Geometry <-> numpy
+# ------------------------------------------------------------------------------------------
+
+def _digest(arrays) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype, a.shape)).encode())
+        h.update(a.data)
+    return h.hexdigest()
+
+
+def geometry_arrays(geo) -> dict:
+    """A ``visibility.Geometry`` as numpy float32 arrays (bitwise what the kernels read)."""
+    vec = lambda v: np.ascontiguousarray(np.asarray(v.numpy(), np.float32).T)  # noqa: E731
+    out = {name: vec(getattr(geo, name)) for name in ("v0", "v1", "v2", "normal", "curve_center", "curve_axis")}
+    out["curve_radius"] = np.asarray(geo.curve_radius.numpy(), np.float32)
+    out["offset"] = np.float64(geo.offset)
+    out["size"] = int(geo.size)
+    return out
+
+
+def _upload_geometry(arrays: dict):
+    import mitsuba as mi
+
+    from .visibility import Geometry
+
+    vec = lambda a: mi.Vector3f(mi.Float(a[:, 0].copy()), mi.Float(a[:, 1].copy()), mi.Float(a[:, 2].copy()))  # noqa: E731
+    return Geometry(*(vec(arrays[n]) for n in ("v0", "v1", "v2", "normal", "curve_center", "curve_axis")),
+                    mi.Float(arrays["curve_radius"]), float(arrays["offset"]), int(arrays["size"]))
+
+
+def cluster_arrays(clusters) -> dict | None:
+    """A ``cluster.ClusterGeometry`` as numpy arrays, or None."""
+    if clusters is None:
+        return None
+    return {"first": int(clusters.first), "patches": int(clusters.patches), "count": int(clusters.count),
+            "order": np.asarray(clusters.order.numpy(), np.uint32), "cum": np.asarray(clusters.cum.numpy(), np.float32),
+            "lo": np.asarray(clusters.lo.numpy(), np.uint32), "hi": np.asarray(clusters.hi.numpy(), np.uint32),
+            "area": np.asarray(clusters.area.numpy(), np.float32)}
+
+
+def _upload_clusters(arrays: dict | None):
+    if arrays is None:
+        return None
+    import mitsuba as mi
+
+    from .cluster import ClusterGeometry
+
+    return ClusterGeometry(arrays["first"], mi.UInt32(arrays["order"]), mi.Float(arrays["cum"]),
+                           mi.UInt32(arrays["lo"]), mi.UInt32(arrays["hi"]), mi.Float(arrays["area"]),
+                           arrays["patches"], arrays["count"])
+
+
+def _token(arrays: dict | None) -> str:
+    if arrays is None:
+        return "none"
+    return _digest([v for v in arrays.values() if isinstance(v, np.ndarray)]) + str(
+        [v for v in arrays.values() if not isinstance(v, np.ndarray)])
+
+
+# ------------------------------------------------------------------------------------------
+# Tasks (run on workers)
+# ------------------------------------------------------------------------------------------
+
+def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samples: int, seed: int):
+    """One batch of links on a worker: the per-link LinkWave fields and the ray count."""
+    from .visibility import LinkWave, evaluate_links
+
+    scene = _worker_scene(key)
+    geo_token, geo_arrays = geo_payload
+    cl_token, cl_arrays = cl_payload
+    geo = _cached("g" + geo_token, lambda: _upload_geometry(geo_arrays))
+    clusters = _cached("c" + cl_token, lambda: _upload_clusters(cl_arrays))
+    wave = evaluate_links(scene.mi_scene, geo, recv, src, samples=samples, seed=seed, clusters=clusters,
+                          vclass=vclass)
+    return tuple(getattr(wave, f) for f in LinkWave.FIELDS), wave.rays
+
+
+def _reference_task(key: _SceneKey, triangles, samples: int, seed: int, max_depth: int, method: str):
+    from .reference import triangle_reference
+
+    scene = _worker_scene(key)
+    ref = triangle_reference(scene, samples_per_triangle=samples, seed=seed, max_depth=max_depth,
+                             triangles=triangles, method=method)
+    return ref.radiosity, ref.stderr, ref.paths
+
+
+# ------------------------------------------------------------------------------------------
+# Client side
+# ------------------------------------------------------------------------------------------
+
+class DaskEvaluator:
+    """Runs link waves on a Dask cluster; made lazily by the solver (``Problem.evaluate``).
+
+    Parameters
+    ----------
+    scene : mirad.Scene loaded from a file (``scene.source``)
+    workers : int, local worker processes (a LocalCluster; ignored when ``scheduler`` is given)
+    scheduler : str or None, address of a running Dask scheduler
+    """
+
+    def __init__(self, scene, *, workers: int = 0, scheduler: str | None = None):
+        distributed = _require_distributed()
+        path = scene_file(scene)
+        self._cluster = None
+        if scheduler:
+            try:
+                self.client = distributed.Client(scheduler, timeout="30s")
+            except Exception as exc:
+                raise SettingsError(f"cannot connect to the Dask scheduler at {scheduler!r} ({exc}); "
+                                    "check the address or start one with 'dask scheduler'") from None
+            threads = 0
+        else:
+            cores = os.cpu_count() or 1
+            threads = max(1, cores // max(int(workers), 1))
+            self._cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                                     dashboard_address=None, silence_logs=40)
+            self.client = distributed.Client(self._cluster)
+        self.workers = max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
+        self.key = _SceneKey(path, scene.fingerprint, scene.variant, threads)
+        self._geo = (None, None)       # (token, future) of the last scattered geometry
+        self._cl = (None, None)
+        self.batches = 0
+
+    def _scatter(self, slot: str, arrays):
+        token = _token(arrays)
+        last_token, last_future = getattr(self, slot)
+        if token == last_token:
+            return last_future
+        future = self.client.scatter((token, arrays), broadcast=True, hash=False)
+        setattr(self, slot, (token, future))
+        return future
+
+    def evaluate_links(self, mi_scene, geo, recv: np.ndarray, src: np.ndarray, *, samples: int, seed: int,
+                       clusters=None, vclass: np.ndarray | None = None):
+        """Same contract (and bitwise the same results) as ``visibility.evaluate_links``.
+
+        ``mi_scene`` is unused (workers trace against their own copy of the scene file); it is
+        there so both functions take the same arguments.
+        """
+        from .visibility import LinkWave
+
+        m = len(recv)
+        vclass = np.zeros(m, np.int8) if vclass is None else np.asarray(vclass, np.int8)
+        if m == 0:
+            return LinkWave(*(np.zeros(0, np.float32) for _ in LinkWave.FIELDS), 0)
+        geo_f = self._scatter("_geo", geometry_arrays(geo))
+        cl_f = self._scatter("_cl", cluster_arrays(clusters))
+        batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
+        bounds = np.linspace(0, m, batches + 1).astype(np.int64)
+        futures = [self.client.submit(_links_task, self.key, geo_f, cl_f, recv[a:b], src[a:b], vclass[a:b],
+                                      int(samples), int(seed), pure=False)
+                   for a, b in zip(bounds[:-1], bounds[1:])]
+        results = self.client.gather(futures)
+        self.batches += len(futures)
+        fields = [np.concatenate([r[0][i] for r in results]) for i in range(len(LinkWave.FIELDS))]
+        return LinkWave(*fields, int(sum(r[1] for r in results)))
+
+    def reference(self, scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
+                  method: str = "outgoing", chunk: int = 4096):
+        """Per-triangle path-traced reference computed in triangle chunks on the workers.
+
+        Chunk k of ``chunk`` triangles runs ``reference.triangle_reference`` with its own seed
+        (a hash of ``seed`` and k), so the result depends on ``seed`` and ``chunk`` only, not on
+        the number of workers. It is an independent estimate of the same quantity as the
+        in-process reference (not bitwise the same: that one seeds per launch).
+        """
+        from .reference import Reference
+
+        t = scene.triangle_count
+        starts = range(0, t, int(chunk))
+        futures = [self.client.submit(_reference_task, self.key, np.arange(a, min(t, a + chunk)),
+                                      int(samples_per_triangle), _chunk_seed(seed, k), int(max_depth), method,
+                                      pure=False)
+                   for k, a in enumerate(starts)]
+        import time
+
+        t0 = time.perf_counter()
+        parts = self.client.gather(futures)
+        return Reference(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                         int(samples_per_triangle), time.perf_counter() - t0, int(sum(p[2] for p in parts)),
+                         method=method, seed=int(seed), fingerprint=scene.fingerprint)
+
+    def close(self) -> None:
+        """Close the client (and the LocalCluster this evaluator started)."""
+        try:
+            self.client.close()
+        finally:
+            if self._cluster is not None:
+                self._cluster.close()
+                self._cluster = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _chunk_seed(seed: int, chunk: int) -> int:
+    digest = hashlib.blake2b(f"mirad-ref:{seed}:{chunk}".encode(), digest_size=4).digest()
+    return int.from_bytes(digest, "little") >> 1
+
+
+def distributed_reference(scene, *, workers: int = 0, scheduler: str | None = None, **options):
+    """``DaskEvaluator.reference`` on a cluster made for this call (closed afterwards)."""
+    with DaskEvaluator(scene, workers=workers, scheduler=scheduler) as ev:
+        return ev.reference(scene, **options)
