@@ -27,6 +27,10 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--oracle", choices=["kernel", "bf", "bound"], default=None,
                        help="refinement oracle (default kernel; bound: conservative, estimate is a bound)")
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
+    solve.add_argument("--workers", type=int, default=None,
+                       help="run the visibility waves on a local Dask cluster of N worker processes")
+    solve.add_argument("--scheduler", default=None, metavar="ADDR",
+                       help="run the visibility waves on the Dask scheduler at ADDR (e.g. tcp://host:8786)")
 
     sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
     _add_output_commands(sub, common)
@@ -58,7 +62,7 @@ def _solve(args) -> int:
     _check_output(args.output, (".ply", ".npz"))
     sol = mirad.solve(args.scene, tolerance=args.tolerance, samples_per_link=args.samples_per_link,
                       seed=args.seed, solver=args.solver, oracle=args.oracle, variant=args.variant,
-                      quiet=args.quiet)
+                      quiet=args.quiet, workers=args.workers, scheduler=args.scheduler)
     sol.save(args.output)
     if args.stats:
         text = json.dumps(sol.stats, indent=2, default=str).encode()
