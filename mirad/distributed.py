@@ -19,7 +19,12 @@ as one launch: the solution is identical to the in-process one for a fixed seed
 (tests/test_distributed.py checks it).
 
 A scene handed over as a Mitsuba dict or an ``mi.Scene`` has no file a worker could load:
-those raise ``SettingsError``.
+those raise ``SettingsError``. Local worker processes are started with ``spawn``, so a script
+that asks for workers must guard its entry point with ``if __name__ == "__main__":``.
+
+Only ``Problem.evaluate`` (the link waves: refinement and the final fresh-sample pass) goes
+to the workers; the matrix entries of cluster links (``visibility.cluster_link_entries``)
+and the direct-light pass still run in the client process.
 
 >>> sol = mirad.solve("scenes/cornell-box/scene.xml", workers=2)            # doctest: +SKIP
 >>> sol = mirad.solve("scene.xml", scheduler="tcp://10.0.0.5:8786")         # doctest: +SKIP
