@@ -83,6 +83,8 @@ class Scene:
     light_kinds: list
     variant: str
     dropped_triangles: int = 0
+    duplicate_triangles: int = 0
+    non_manifold_edges: int = 0
     warnings: list = field(default_factory=list)
     non_diffuse_shapes: list = field(default_factory=list)
 
@@ -161,6 +163,8 @@ class Scene:
             "curved_shapes": int(np.count_nonzero(self.curve_radius > 0)),
             "non_diffuse_approximated": list(self.non_diffuse_shapes),
             "dropped_zero_area_triangles": int(self.dropped_triangles),
+            "duplicate_triangles": int(self.duplicate_triangles),
+            "non_manifold_edges": int(self.non_manifold_edges),
         }
 
     @property
@@ -310,6 +314,7 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
             continue
         scene.light_emitters.append(emitter)
         scene.light_kinds.append(emitter.class_name())
+    _check_topology(scene, where)
     if scene.tri_emission.max() <= 0 and not scene.light_emitters:
         raise SceneError(
             f"{where}: the scene has no light; add an area emitter to a shape or a point/spot/"
@@ -320,6 +325,44 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
         _warn_once(scene, "the mi.Scene has no shape ids (was it loaded with optimize=True, which merges "
                           "shapes?); load it with mirad.load_scene(path) to keep them")
     return scene
+
+
+#: Vertices closer than this fraction of the scene diagonal are the same point (topology checks).
+WELD = 1e-7
+
+
+def _check_topology(scene: Scene, where: str) -> None:
+    """Detect coincident duplicate triangles and non-manifold edges; warn once for each.
+
+    Vertices are welded on a grid of ``WELD * diagonal`` (the check works across shapes and
+    whatever the indexing); a triangle is a duplicate when another one has the same three welded
+    corners (either winding), an edge is non-manifold when more than two triangles of one shape
+    share it. Both are solved as they are (coincident elements are coplanar: no transfer between
+    them); the counts go to ``scene.features``.
+    """
+    q = np.round(scene.vertices / (WELD * scene.diagonal)).astype(np.int64)
+    _, weld = np.unique(q, axis=0, return_inverse=True)
+    corners = np.sort(weld.reshape(-1)[scene.faces], axis=1)                  # (T, 3)
+    _, tri_key, tri_count = np.unique(corners, axis=0, return_inverse=True, return_counts=True)
+    dup = tri_count[tri_key.reshape(-1)] > 1
+    edges = np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]], corners[:, [0, 2]]])
+    shape3 = np.tile(scene.tri_shape, 3)
+    keys = np.column_stack([shape3, edges])
+    _, edge_key, edge_count = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    bad_edge = edge_count > 2
+    scene.duplicate_triangles = int(dup.sum())
+    scene.non_manifold_edges = int(bad_edge.sum())
+    if dup.any():
+        names = ", ".join(f"'{scene.shape_ids[i]}'" for i in np.unique(scene.tri_shape[dup])[:5])
+        _warn_once(scene, f"{where}: {int(dup.sum())} triangles coincide with another triangle (shapes "
+                          f"{names}); mirad solves them as separate coplanar surfaces that exchange no "
+                          "light; remove the duplicates (merge by distance) unless they are meant")
+    if bad_edge.any():
+        tri_of_edge = np.tile(np.arange(scene.triangle_count), 3)[bad_edge[edge_key.reshape(-1)]]
+        names = ", ".join(f"'{scene.shape_ids[i]}'" for i in np.unique(scene.tri_shape[tri_of_edge])[:5])
+        _warn_once(scene, f"{where}: {int(bad_edge.sum())} non-manifold edges (shared by more than two "
+                          f"triangles of one shape: {names}); mirad solves each triangle on its own; "
+                          "repair the mesh if the fins are not meant")
 
 
 def _warn_once(scene: Scene, message: str) -> None:
