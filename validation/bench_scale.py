@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import importlib.util
 import json
 import os
@@ -77,6 +78,7 @@ def child(scene_path: str, options: dict, reference: str | None) -> dict:
            "triangles": int(scene.triangle_count), "patches": int(len(scene.patch_tri)),
            **{k: st[k] for k in ("elements", "leaves", "links", "rays", "estimated_error", "estimated_error_of_mean",
                                   "refine_passes", "clusters", "seconds", "memory_bytes", "capped")}}
+    out["radiosity_digest"] = hashlib.sha256(np.ascontiguousarray(sol.triangle_radiosity).tobytes()).hexdigest()[:16]
     if reference:
         ref = Reference.load(reference)
         cmp = metrics.compare(sol.triangle_radiosity[:, :3] if sol.triangle_radiosity.shape[1] == 3
@@ -138,6 +140,19 @@ def clustering_on_off(triangles: int, tolerance: float) -> dict:
     return out
 
 
+def dask_solve(triangles: int, tolerance: float, workers: int = 2) -> dict:
+    """A whole solve in-process and with ``workers`` Dask workers: times and bitwise identity."""
+    path = canopy(triangles)
+    out = {"name": path.parent.name, "tolerance": tolerance, "workers": workers}
+    for key, extra in (("in_process", {}), ("dask", {"workers": workers})):
+        print(f"solve {path.parent.name} {key} ...", flush=True)
+        out[key] = run_child(path, {"tolerance": tolerance, **extra})
+        print(json.dumps(out[key]), flush=True)
+    a, b = out["in_process"], out["dask"]
+    out["identical"] = all(a[k] == b[k] for k in ("links", "rays", "elements", "estimated_error", "radiosity_digest"))
+    return out
+
+
 def dask_wave(triangles: int, links: int = 1_000_000, workers: int = 2) -> dict:
     """Rays/s of one visibility wave, in-process against a LocalCluster of ``workers`` processes."""
     import mirad
@@ -196,7 +211,7 @@ def _row(r) -> str:
             f"{r['memory_bytes']['elements'] / max(r['elements'], 1):.0f} | {_mb(r['peak_rss'])} |")
 
 
-def markdown(sweep, onoff, dask, tolerance, extra=()) -> str:
+def markdown(sweep, onoff, dask, tolerance, extra=(), dask_full=None) -> str:
     from mirad.validate import machine
 
     import drjit
@@ -246,6 +261,17 @@ def markdown(sweep, onoff, dask, tolerance, extra=()) -> str:
                          f"{100 * e['noise_l1']:.2f} % | {_mb(r['peak_rss'])} |")
         lines += ["", "(est. error here is `estimated_error_of_mean`, the estimate in the L1 metric's norm; rows "
                   "without a sample count use the default 16 samples per link.)", ""]
+    if dask_full:
+        a, b = dask_full["in_process"], dask_full["dask"]
+        lines += [f"### Dask: a whole solve of {dask_full['name']} at tolerance {dask_full['tolerance']}", "",
+                  "| run | seconds | visibility s | links | rays | est. error | peak RSS MB (client) |",
+                  "|---|---:|---:|---:|---:|---:|---:|",
+                  *(f"| {name} | {r['wall']:.1f} | {r['seconds'].get('visibility', 0):.1f} | {r['links']:,} | "
+                    f"{r['rays']:,} | {100 * r['estimated_error']:.2f} % | {_mb(r['peak_rss'])} |"
+                    for name, r in (("in-process", a), (f"Dask, {dask_full['workers']} workers", b))),
+                  "", f"- per-triangle radiosity, links, rays and estimate bitwise identical: "
+                  f"{'yes' if dask_full['identical'] else 'NO'} (sha256 of the radiosity array: {a['radiosity_digest']} "
+                  f"/ {b['radiosity_digest']}); the Dask time includes starting the LocalCluster", ""]
     if dask:
         lines += [f"### Dask: one visibility wave on {dask['name']}", "",
                   f"{dask['links']:,} links x 16 rays ({dask['rays']:,} rays traced), {dask['batches']} batches on a "
@@ -279,6 +305,8 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-compare", action="store_true")
     ap.add_argument("--skip-dask", action="store_true")
     ap.add_argument("--extra", default="", help="further solves SIZE:TOLERANCE[,...] (e.g. 100000:0.01)")
+    ap.add_argument("--dask-solve", default="", help="SIZE:TOLERANCE: a whole solve in-process and on 2 "
+                    "Dask workers, compared bitwise (e.g. 100000:0.02)")
     ap.add_argument("--json", default=None, help="also write every figure as JSON here")
     ap.add_argument("--record", action="store_true", help="append the results to validation/RESULTS.md")
     args = ap.parse_args(argv)
@@ -291,8 +319,13 @@ def main(argv=None) -> int:
         dask = dask_wave(args.dask_size)
         print(json.dumps(dask), flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps({"sweep": sweep, "extra": extra, "onoff": onoff, "dask": dask}, indent=1, default=str))
-    section = markdown(sweep, onoff, dask, args.tolerance, extra)
+        Path(args.json).write_text(json.dumps({"sweep": sweep, "extra": extra, "onoff": onoff, "dask": dask,
+                                                "dask_solve": dask_full}, indent=1, default=str))
+    dask_full = None
+    if args.dask_solve:
+        size, tol = args.dask_solve.split(":")
+        dask_full = dask_solve(int(size), float(tol))
+    section = markdown(sweep, onoff, dask, args.tolerance, extra, dask_full)
     print(section)
     if args.record:
         record(section)
