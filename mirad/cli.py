@@ -247,14 +247,26 @@ def _check_output(path: str, suffixes: tuple) -> None:
     if os.path.splitext(path)[1].lower() not in suffixes:
         raise OutputError(f"output '{path}' must end in one of {', '.join(suffixes)}")
     folder = os.path.dirname(path) or "."
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OutputError(f"cannot write '{path}': '{folder}' is a file, not a folder; choose another output path")
+    if os.path.isdir(path):
+        raise OutputError(f"cannot write '{path}': it is a folder; give a file name such as {path.rstrip('/')}/out{suffixes[0]}")
     if not os.path.isdir(folder):
         raise OutputError(f"cannot write '{path}': folder '{folder}' does not exist; create it first")
     if not os.access(folder, os.W_OK):
-        raise OutputError(f"cannot write '{path}': folder '{folder}' is not writable")
+        raise OutputError(f"cannot write '{path}': folder '{folder}' is not writable; choose another output path")
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line each, 'mirad: warning: ...' (no source path or code line)."""
+    print(f"mirad: warning: {message}", file=sys.stderr if file is None else file)
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    import warnings
+
+    warnings.showwarning = _show_warning
     try:
         from mirad.errors import MiradError
     except Exception as exc:  # pragma: no cover - broken installation

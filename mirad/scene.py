@@ -296,6 +296,9 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
     cross, double_area = cross[keep], double_area[keep]
     if len(faces) == 0:
         raise SceneError(f"{where}: every triangle has zero area; the scene has no usable geometry")
+    vanished = np.setdiff1d(np.arange(len(ids)), tri_shape)
+    pending = [f"{where}: shape '{ids[i]}' has only zero-area triangles and is left out of the solve; "
+               "fix or remove it" for i in vanished]
     tri_area = 0.5 * double_area
     tri_normal = cross / double_area[:, None]
 
@@ -307,6 +310,8 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
         curve_radius=curve_radius, vertex_uv=vertex_uv, light_emitters=[], light_kinds=[],
         variant=variant, dropped_triangles=dropped,
     )
+    for message in pending:
+        _warn_once(scene, message)
     _evaluate_materials(scene, shapes, where)
 
     for emitter in mi_scene.emitters():
@@ -395,6 +400,8 @@ def _triangulate(shape, sid: str, where: str):
         uv = None
         if shape.has_vertex_texcoords():
             uv = np.array(shape.vertex_texcoords_buffer().numpy(), dtype=np.float64).reshape(-1, 2)
+        if shape.has_vertex_normals():
+            _check_vertex_normals(shape, sid, where, faces)
         if shape.has_flipped_normals():
             faces = faces[:, ::-1].copy()
         return verts, faces, uv, flat
@@ -425,6 +432,24 @@ def _triangulate(shape, sid: str, where: str):
     if shape.has_flipped_normals():
         faces = faces[:, ::-1].copy()
     return verts, faces, uv, flat
+
+
+def _check_vertex_normals(shape, sid: str, where: str, faces: np.ndarray) -> None:
+    """Reject vertex normals that are NaN, Inf or of zero length on vertices that faces use.
+
+    mirad's own normals come from the triangles, but Mitsuba shades (and its path-traced reference
+    and renders sample) with these, so a degenerate one would give NaN pixels, not an error.
+    """
+    normals = np.array(shape.vertex_normals_buffer().numpy(), dtype=np.float64).reshape(-1, 3)
+    used = np.unique(faces)
+    length = np.linalg.norm(normals[used], axis=1)
+    bad = ~np.isfinite(length) | (length < 1e-6)
+    if bad.any():
+        raise SceneError(
+            f"{where}: shape '{sid}' has {int(bad.sum())} degenerate vertex normals (zero length, NaN or "
+            "Inf); re-export the mesh with valid normals, or add <boolean name=\"face_normals\" "
+            "value=\"true\"/> to the shape to use flat face normals"
+        )
 
 
 def _disk_mesh(segments: int = 32, rings: int = 3):

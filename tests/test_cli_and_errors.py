@@ -106,3 +106,127 @@ def test_npz_round_trip_and_fingerprint_check(tmp_path, cornell):
     other = mirad.load_scene(SCENES / "closed-form" / "furnace.xml")
     with pytest.raises(mirad.SolutionMismatch, match="fingerprint"):
         mirad.load_solution(path, scene=other)
+
+
+# --- issue 7: more bad input, each through the CLI entry point (in process: no interpreter start-up) ---
+
+def _ply(path, verts, normals=None):
+    """One-triangle binary PLY, optionally with vertex normals."""
+    props = "property float x\nproperty float y\nproperty float z\n"
+    data = np.asarray(verts, np.float32)
+    if normals is not None:
+        props += "property float nx\nproperty float ny\nproperty float nz\n"
+        data = np.hstack([data, np.asarray(normals, np.float32)])
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(data)}\n{props}element face 1\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    path.write_bytes(header.encode() + data.tobytes() + np.uint8(3).tobytes() + np.array([0, 1, 2], np.int32).tobytes())
+
+
+TRIANGLE = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+LAMP = '<shape type="rectangle" id="lamp"><emitter type="area"/></shape>'
+PLY_SCENE = ('<scene version="3.0.0"><shape type="ply" id="leaf"><string name="filename" value="{}"/></shape>'
+             + LAMP + '</scene>')
+#: name -> (scene text, PLY (vertices, normals) or None, words the message must hold)
+MORE_BAD = {
+    "negative-rho.xml": ('<scene version="3.0.0"><shape type="rectangle" id="wall"><bsdf type="diffuse">'
+                         '<rgb name="reflectance" value="-0.2"/></bsdf><emitter type="area"/></shape></scene>',
+                         None, ["reflectance", "between 0 and 1"]),
+    "negative-radiance.xml": ('<scene version="3.0.0"><shape type="rectangle" id="wall"><emitter type="area">'
+                              '<rgb name="radiance" value="-1"/></emitter></shape>' + LAMP + '</scene>',
+                              None, ["shape 'wall'", "radiance", "non-negative"]),
+    "inf.xml": (PLY_SCENE.format("inf.ply"), ([[0, 0, 0], [1, 0, np.inf], [0, 1, 0]], None),
+                ["inf.ply", "NaN or Inf", "re-export"]),
+    "zero-normals.xml": (PLY_SCENE.format("zero-normals.ply"), (TRIANGLE, np.zeros((3, 3))),
+                         ["shape 'leaf'", "degenerate vertex normals", "face_normals"]),
+    "nan-normals.xml": (PLY_SCENE.format("nan-normals.ply"), (TRIANGLE, np.full((3, 3), np.nan)),
+                        ["shape 'leaf'", "degenerate vertex normals", "face_normals"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MORE_BAD))
+def test_more_bad_scenes_name_shape_or_file_and_the_fix(tmp_path, capsys, name):
+    from mirad.cli import main
+
+    text, mesh, words = MORE_BAD[name]
+    if mesh is not None:
+        _ply(tmp_path / name.replace(".xml", ".ply"), *mesh)
+    path = _write(tmp_path, name, text)
+    out = tmp_path / "out.ply"
+    assert main(["solve", str(path), "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mirad: error: ") and name in err and "Traceback" not in err
+    for word in words:
+        assert word in err
+    assert not out.exists() and not list(tmp_path.glob(".out.ply*"))
+
+
+@pytest.mark.parametrize("option, word", [(["--tolerance", "0"], "tolerance"), (["--tolerance", "1"], "tolerance"),
+                                          (["--tolerance", "-0.1"], "tolerance"),
+                                          (["--samples-per-link", "0"], "samples_per_link")])
+def test_bad_cli_options_name_the_parameter_and_write_nothing(tmp_path, capsys, option, word):
+    from mirad.cli import main
+
+    out = tmp_path / "out.ply"
+    assert main(["solve", str(CORNELL), "-o", str(out), "--quiet", *option]) == 2
+    err = capsys.readouterr().err
+    assert word in err and ("(0, 1)" in err or ">= 1" in err) and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_output_in_a_file_or_onto_a_folder_is_refused_before_solving(tmp_path, capsys):
+    from mirad.cli import main
+
+    (tmp_path / "notes.txt").write_text("x")
+    assert main(["solve", str(CORNELL), "-o", str(tmp_path / "notes.txt" / "out.ply"), "--quiet"]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    (tmp_path / "sub.ply").mkdir()
+    assert main(["solve", str(CORNELL), "-o", str(tmp_path / "sub.ply"), "--quiet"]) == 2
+    assert "it is a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "sub.ply"]
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() == 0,
+                    reason="root may write into read-only folders")
+def test_output_in_an_unwritable_folder_is_refused(tmp_path, capsys):
+    from mirad.cli import main
+
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    assert main(["solve", str(CORNELL), "-o", str(locked / "out.ply"), "--quiet"]) == 2
+    assert "not writable" in capsys.readouterr().err
+    assert not list(locked.iterdir())
+
+
+def test_a_shape_with_only_zero_area_triangles_is_named_in_one_warning(tmp_path, capsys):
+    from mirad.cli import main
+
+    _ply(tmp_path / "flat.ply", [[0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    path = _write(tmp_path, "flat.xml", PLY_SCENE.format("flat.ply"))
+    assert main(["info", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("mirad: warning:") == 1 and "shape 'leaf' has only zero-area triangles" in err
+
+
+def test_ctrl_c_during_a_solve_leaves_no_file_and_a_clean_message(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out.ply"
+    proc = subprocess.Popen([sys.executable, "-m", "mirad.cli", "solve", str(SCENES / "wall-pierce" / "scene.xml"),
+                             "--tolerance", "0.01", "-o", str(out)], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.time() + 120
+        seen = ""
+        while "elements=" not in seen and time.time() < deadline:     # the progress bar: refinement runs
+            seen += proc.stderr.read1(4096) if hasattr(proc.stderr, "read1") else proc.stderr.read(1)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    assert "interrupted; no output was written" in err and "Traceback" not in seen + err
+    assert not out.exists() and not list(tmp_path.iterdir())
