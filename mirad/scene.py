@@ -550,7 +550,7 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
                 raise SceneError(f"{where}: shape '{sid}': emitter radiance is NaN or Inf; give finite values")
             if radiance.min() < 0:
                 raise SceneError(f"{where}: shape '{sid}': emitter radiance {radiance.min():.3g} < 0; "
-                                 "radiance must be non-negative")
+                                 "radiance must be non-negative; give the emitter a radiance >= 0")
             scene.tri_emission[tris] = np.pi * radiance.reshape(len(tris), n_pts, 3).mean(axis=1)
 
 
