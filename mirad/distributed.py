@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -217,6 +218,7 @@ class DaskEvaluator:
     def __init__(self, scene, *, workers: int = 0, scheduler: str | None = None):
         distributed = _require_distributed()
         path = scene_file(scene)
+        t0 = time.perf_counter()
         self._cluster = None
         if scheduler:
             try:
@@ -236,6 +238,8 @@ class DaskEvaluator:
         self._geo = (None, None)       # (token, future) of the last scattered geometry
         self._cl = (None, None)
         self.batches = 0
+        #: seconds: starting/connecting, packing + scattering geometry, waiting for the batches
+        self.timing = {"start": time.perf_counter() - t0, "scatter": 0.0, "run": 0.0}
 
     def _scatter(self, slot: str, arrays):
         token = _token(arrays)
@@ -259,14 +263,18 @@ class DaskEvaluator:
         vclass = np.zeros(m, np.int8) if vclass is None else np.asarray(vclass, np.int8)
         if m == 0:
             return LinkWave(*(np.zeros(0, np.float32) for _ in LinkWave.FIELDS), 0)
+        t0 = time.perf_counter()
         geo_f = self._scatter("_geo", geometry_arrays(geo))
         cl_f = self._scatter("_cl", cluster_arrays(clusters))
+        t1 = time.perf_counter()
+        self.timing["scatter"] += t1 - t0
         batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
         bounds = np.linspace(0, m, batches + 1).astype(np.int64)
         futures = [self.client.submit(_links_task, self.key, geo_f, cl_f, recv[a:b], src[a:b], vclass[a:b],
                                       int(samples), int(seed), pure=False)
                    for a, b in zip(bounds[:-1], bounds[1:])]
         results = self.client.gather(futures)
+        self.timing["run"] += time.perf_counter() - t1
         self.batches += len(futures)
         fields = [np.concatenate([r[0][i] for r in results]) for i in range(len(LinkWave.FIELDS))]
         return LinkWave(*fields, int(sum(r[1] for r in results)))
@@ -288,8 +296,6 @@ class DaskEvaluator:
                                       int(samples_per_triangle), _chunk_seed(seed, k), int(max_depth), method,
                                       pure=False)
                    for k, a in enumerate(starts)]
-        import time
-
         t0 = time.perf_counter()
         parts = self.client.gather(futures)
         return Reference(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
