@@ -154,6 +154,8 @@ def _add_output_commands(sub, common) -> None:
     export.add_argument("--lightmaps", default=None,
                         help="folder for one radiosity lightmap <shape id>.exr per shape with UVs")
     export.add_argument("--lightmap-res", type=int, default=256, help="lightmap size in texels (default 256)")
+    export.add_argument("--error-maps", action="store_true",
+                        help="with --lightmaps, also write <shape>.error.exr: the estimated error map (W/m^2)")
 
     probe = sub.add_parser("probe", parents=[common, solved], help="irradiance at sensor points")
     probe.add_argument("--points", required=True, help="CSV file with a header and columns x,y,z,nx,ny,nz")
@@ -219,7 +221,8 @@ def _export(args) -> int:
     if args.shapes:
         written.append(export.write_shape_summary(sol, args.shapes))
     if args.lightmaps:
-        written += export.write_lightmaps(sol, args.lightmaps, resolution=args.lightmap_res)
+        written += export.write_lightmaps(sol, args.lightmaps, resolution=args.lightmap_res,
+                                          error=args.error_maps)
     if not args.quiet:
         print(f"wrote {', '.join(map(str, written))}")
     return 0

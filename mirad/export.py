@@ -240,8 +240,9 @@ def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance:
 # ------------------------------------------------------------------------------------------
 
 def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None = None,
-                   dilate: int = 8) -> dict:
-    """Radiosity (W/m^2) baked into a (resolution, resolution, 3) texture per shape with UVs.
+                   dilate: int = 8, quantity: str = "radiosity") -> dict:
+    """Radiosity (W/m^2) baked into a (resolution, resolution, 3) texture per shape with UVs
+    (``quantity="error"``: the estimated error map instead, W/m^2).
 
     Texel (row i, column j) covers u in [j, j+1)/R and v in [i, i+1)/R: row 0 is v = 0, as
     Mitsuba's ``bitmap`` texture reads it, so a map can texture the same shape directly. Each
@@ -265,9 +266,11 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None =
     faces, shape_of = a["faces"], a["triangle_shape"]
     tri_uv = uv_all[faces]                                              # (T, 3, 2)
     has_uv = np.all(np.isfinite(tri_uv), axis=(1, 2))
+    if quantity not in ("radiosity", "error"):
+        raise SettingsError(f"lightmap quantity={quantity!r} must be 'radiosity' or 'error'")
     shading = Shading(solution)
-    b_leaf = np.asarray(a["leaf_radiosity"], np.float64)
-    b_tri = solution.triangle_radiosity
+    b_leaf = np.asarray(a[f"leaf_{quantity}"], np.float64)
+    b_tri = solution.triangle_radiosity if quantity == "radiosity" else solution.triangle_error
     maps = {}
     for s, sid in enumerate(solution.shape_ids):   # one vectorised bake per shape
         tris = np.flatnonzero((shape_of == s) & has_uv)
@@ -365,18 +368,27 @@ def _safe_name(shape_id: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", shape_id) or "shape"
 
 
-def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int = 2, dilate: int = 8) -> list:
-    """Bake lightmaps and write ``<folder>/<shape_id>.exr`` (R, G, B float, W/m^2) per shape with UVs."""
+def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int = 2, dilate: int = 8,
+                    error: bool = False) -> list:
+    """Bake lightmaps and write ``<folder>/<shape_id>.exr`` (R, G, B float, W/m^2) per shape with UVs;
+    with ``error``, also ``<shape_id>.error.exr``, the estimated error map (W/m^2)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise OutputError(f"lightmap folder '{folder}' does not exist; create it first")
     maps = bake_lightmaps(solution, resolution=resolution, supersample=supersample, dilate=dilate)
     if not maps:
         raise OutputError("no shape in the scene has texture coordinates (UVs); there is nothing to bake")
-    blobs = {sid: exr_bytes({"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}) for sid, img in maps.items()}
+    blobs = {f"{_safe_name(sid)}.exr": exr_bytes({"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})
+             for sid, img in maps.items()}
+    if error:
+        errors = bake_lightmaps(solution, resolution=resolution, supersample=supersample, dilate=dilate,
+                                quantity="error")
+        blobs.update({f"{_safe_name(sid)}.error.exr": exr_bytes({"R": img[..., 0], "G": img[..., 1],
+                                                                 "B": img[..., 2]})
+                      for sid, img in errors.items()})
     written = []
-    for sid, blob in blobs.items():  # one file per shape
-        path = folder / f"{_safe_name(sid)}.exr"
+    for name, blob in blobs.items():  # one file per shape (and map)
+        path = folder / name
         atomic_write(path, lambda handle, blob=blob: handle.write(blob))
         written.append(path)
     return written

@@ -194,3 +194,17 @@ def test_error_map_is_exported(cornell, tmp_path):
     sol.save(path)
     ply = trimesh.load(path, process=False)
     assert "error_r" in ply.metadata["_ply_raw"]["vertex"]["data"].dtype.names
+
+
+def test_error_lightmap_matches_the_per_triangle_error_map(cornell, tmp_path):
+    from mirad import export
+
+    sol = mirad.solve(cornell, tolerance=0.1, quiet=True)
+    maps = export.bake_lightmaps(sol, resolution=32, quantity="error")
+    floor = cornell.shape_index("floor")
+    mask = sol.triangle_shape == floor
+    expected = area_mean(sol.triangle_error[mask], sol.triangle_area[mask])
+    # the floor's UVs cover the unit square, so the texel mean is its area mean
+    np.testing.assert_allclose(maps["floor"].reshape(-1, 3).mean(0), expected, rtol=0.05)
+    written = export.write_lightmaps(sol, tmp_path, resolution=16, error=True)
+    assert (tmp_path / "floor.error.exr").exists() and len(written) == 2 * len(maps)
