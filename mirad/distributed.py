@@ -35,6 +35,7 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+import uuid
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,14 +179,32 @@ def _token(arrays: dict | None) -> str:
 # Tasks (run on workers)
 # ------------------------------------------------------------------------------------------
 
+def _assemble(parts) -> dict:
+    """Element geometry from a chain of parts [(token, arrays), ...]: the first holds the rows
+    of some earlier wave, each later one the rows appended since (elements only ever grow).
+    Concatenations are cached per worker by token, so a worker only appends what is new."""
+    start = 0
+    for i in range(len(parts) - 1, -1, -1):
+        if "n" + parts[i][0] in _ARRAYS:
+            start = i
+            break
+    arrays = _ARRAYS.get("n" + parts[start][0], parts[start][1])
+    for token, delta in parts[start + 1:]:
+        arrays = {k: (np.concatenate([v, delta[k]]) if isinstance(v, np.ndarray) else delta[k])
+                  for k, v in arrays.items()}
+    _ARRAYS.pop("n" + parts[start][0], None)
+    _ARRAYS["n" + parts[-1][0]] = arrays
+    return arrays
+
+
 def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samples: int, seed: int):
     """One batch of links on a worker: the per-link LinkWave fields and the ray count."""
     from .visibility import LinkWave, evaluate_links
 
     scene = _worker_scene(key)
-    geo_token, geo_arrays = geo_payload
+    geo_token = geo_payload[-1][0]
     cl_token, cl_arrays = cl_payload
-    geo = _cached("g" + geo_token, lambda: _upload_geometry(geo_arrays))
+    geo = _cached("g" + geo_token, lambda: _upload_geometry(_assemble(geo_payload)))
     clusters = _cached("c" + cl_token, lambda: _upload_clusters(cl_arrays))
     wave = evaluate_links(scene.mi_scene, geo, recv, src, samples=samples, seed=seed, clusters=clusters,
                           vclass=vclass)
@@ -235,7 +254,8 @@ class DaskEvaluator:
             self.client = distributed.Client(self._cluster)
         self.workers = max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
         self.key = _SceneKey(path, scene.fingerprint, scene.variant, threads)
-        self._geo = (None, None)       # (token, future) of the last scattered geometry
+        self._geo_chain = []           # futures of (token, rows) parts: the geometry sent so far
+        self._geo_sent = None          # numpy arrays of the geometry sent so far
         self._cl = (None, None)
         self.batches = 0
         #: seconds: starting/connecting, packing + scattering geometry, waiting for the batches
@@ -249,6 +269,27 @@ class DaskEvaluator:
         future = self.client.scatter((token, arrays), broadcast=True, hash=False)
         setattr(self, slot, (token, future))
         return future
+
+    def _scatter_geometry(self, arrays: dict) -> list:
+        """Send the rows the workers do not have yet; returns the chain of part futures.
+
+        Elements only ever grow (refinement appends children), so each wave usually sends just
+        the elements added since the last one; anything else starts a new chain.
+        """
+        sent = self._geo_sent
+        n_old = 0 if sent is None else sent["size"]
+        extends = (sent is not None and arrays["size"] >= n_old and arrays["offset"] == sent["offset"]
+                   and all(np.array_equal(arrays[k][:n_old], sent[k]) for k in sent if isinstance(sent[k], np.ndarray)))
+        if extends and arrays["size"] == n_old:
+            return self._geo_chain
+        if extends:
+            part = {k: (v[n_old:] if isinstance(v, np.ndarray) else v) for k, v in arrays.items()}
+        else:
+            part, self._geo_chain = arrays, []
+        token = uuid.uuid4().hex          # unique per part (hashing 30 MB per wave costs more than sending)
+        self._geo_chain = self._geo_chain + [self.client.scatter((token, part), broadcast=True, hash=False)]
+        self._geo_sent = arrays
+        return self._geo_chain
 
     def evaluate_links(self, mi_scene, geo, recv: np.ndarray, src: np.ndarray, *, samples: int, seed: int,
                        clusters=None, vclass: np.ndarray | None = None):
@@ -264,7 +305,7 @@ class DaskEvaluator:
         if m == 0:
             return LinkWave(*(np.zeros(0, np.float32) for _ in LinkWave.FIELDS), 0)
         t0 = time.perf_counter()
-        geo_f = self._scatter("_geo", geometry_arrays(geo))
+        geo_f = self._scatter_geometry(geometry_arrays(geo))
         cl_f = self._scatter("_cl", cluster_arrays(clusters))
         t1 = time.perf_counter()
         self.timing["scatter"] += t1 - t0
