@@ -211,6 +211,10 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
     return tuple(getattr(wave, f) for f in LinkWave.FIELDS), wave.rays
 
 
+def _preload_task(key: _SceneKey) -> int:
+    return _worker_scene(key).triangle_count
+
+
 def _reference_task(key: _SceneKey, triangles, samples: int, seed: int, max_depth: int, method: str):
     from .reference import triangle_reference
 
@@ -258,6 +262,10 @@ class DaskEvaluator:
         self._geo_sent = None          # numpy arrays of the geometry sent so far
         self._cl = (None, None)
         self.batches = 0
+        # every worker starts loading the scene now, while the client links and uploads
+        self._preload = [self.client.submit(_preload_task, self.key, workers=[w], allow_other_workers=False,
+                                            pure=False)
+                         for w in self.client.scheduler_info(n_workers=-1)["workers"]]
         #: seconds: starting/connecting, packing + scattering geometry, waiting for the batches
         self.timing = {"start": time.perf_counter() - t0, "scatter": 0.0, "run": 0.0}
 
