@@ -6,7 +6,8 @@ scheduler instead. Either way each worker
 
 - loads the scene from its file once (``mirad.load_scene``, cached per worker process and
   keyed by the file's absolute path and the scene fingerprint, checked after loading), so a
-  file that differs on the worker is an error, not a silently different answer;
+  file that differs on the worker is an error, not a silently different answer (with a remote
+  scheduler the same absolute path must exist on every worker, e.g. a shared file system);
 - receives the element geometry of a wave as numpy arrays (scattered once per wave, cached
   per worker by a content hash) and a batch of links (receiver ids, source ids, visibility
   classes);
