@@ -318,13 +318,13 @@ def main(argv=None) -> int:
     if not args.skip_dask:
         dask = dask_wave(args.dask_size)
         print(json.dumps(dask), flush=True)
-    if args.json:
-        Path(args.json).write_text(json.dumps({"sweep": sweep, "extra": extra, "onoff": onoff, "dask": dask,
-                                                "dask_solve": dask_full}, indent=1, default=str))
     dask_full = None
     if args.dask_solve:
         size, tol = args.dask_solve.split(":")
         dask_full = dask_solve(int(size), float(tol))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"sweep": sweep, "extra": extra, "onoff": onoff, "dask": dask,
+                                                "dask_solve": dask_full}, indent=1, default=str))
     section = markdown(sweep, onoff, dask, args.tolerance, extra, dask_full)
     print(section)
     if args.record:
