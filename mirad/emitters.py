@@ -18,19 +18,25 @@ import mitsuba as mi  # noqa: E402
 
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
-                      seed: int, keys: np.ndarray) -> tuple[np.ndarray, int]:
-    """Mean direct irradiance (n, 3), W/m^2, over triangles verts (n, 3, 3); returns (H, rays)."""
+                      seed: int, keys: np.ndarray, with_error: bool = False):
+    """Mean direct irradiance (n, 3), W/m^2, over triangles verts (n, 3, 3).
+
+    Returns (H, rays), or with ``with_error`` (H, standard error of H (n, 3), rays): the
+    sample standard deviation of the per-point estimates over sqrt(samples).
+    """
     n = len(verts)
     out = np.zeros((n, 3))
+    err = np.zeros((n, 3))
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, n, per_launch):
         stop = min(n, start + per_launch)
-        h, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
-                              [c[start:stop] for c in curve], samples, seed, keys[start:stop])
+        h, e, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
+                                 [c[start:stop] for c in curve], samples, seed, keys[start:stop])
         out[start:stop] = h
+        err[start:stop] = e
         rays += r
-    return out, rays
+    return (out, err, rays) if with_error else (out, rays)
 
 
 def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
@@ -52,7 +58,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
     si.n = nn
     si.sh_frame = mi.Frame3f(nn)
     offset = RAY_OFFSET * scene.diagonal
-    total = [np.zeros(m) for _ in range(3)]
+    lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
     traced = 0
     for e_i, emitter in enumerate(scene.light_emitters):
         s2 = mi.Point2f(to_unit(hash_u32(key ^ (0x27D4EB2F + e_i))), to_unit(hash_u32(key ^ (0x165667B1 + e_i))))
@@ -68,8 +74,10 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
         ray.maxt = dr.select(is_inf, dr.largest(mi.Float), dist * (1 - 1e-4))
         blocked = scene.mi_scene.ray_test(ray, active)
         w = dr.select(active & ~blocked, cos, 0.0)
-        contrib = spec * w
-        for c in range(3):
-            total[c] += dr.block_sum(contrib[c], n).numpy() / n
+        lane_sum += spec * w
         traced += count_true(active)
-    return np.stack(total, 1), traced
+    dr.eval(lane_sum)
+    mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(3)], 1)
+    square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(3)], 1)
+    stderr = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    return mean, stderr, traced

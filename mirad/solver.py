@@ -68,6 +68,8 @@ class Problem:
         self.b_max_below = np.zeros(len(self.elements))
         self.rays = 0
         self.direct = np.zeros((len(self.elements), self.channels))   # irradiance from point/sky lights
+        self.direct_error = np.zeros_like(self.direct)                   # its standard error, W/m^2
+        self.direct_samples = np.zeros(len(self.elements), np.int64)     # points it was estimated from
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
@@ -210,25 +212,49 @@ class Problem:
         return proven
 
     # --- direct light from non-area emitters ------------------------------------------------
-    def update_direct(self, ids: np.ndarray) -> None:
-        """Direct irradiance (W/m^2) of point/spot/directional/sky lights on elements ids."""
+    def update_direct(self, ids: np.ndarray, samples: int | None = None) -> None:
+        """Direct irradiance (W/m^2) of point/spot/directional/sky lights on elements ids, and
+        its standard error, from ``samples`` points each (default: samples_per_link)."""
         grown = len(self.elements) - len(self.direct)
         if grown > 0:
             self.direct = np.concatenate([self.direct, np.zeros((grown, self.channels))])
+            self.direct_error = np.concatenate([self.direct_error, np.zeros((grown, self.channels))])
+            self.direct_samples = np.concatenate([self.direct_samples, np.zeros(grown, np.int64)])
         ids = ids[~self.elements.is_cluster(ids)]
         if not self.scene.light_emitters or len(ids) == 0:
             return
         from .emitters import direct_irradiance
 
         t = time.perf_counter()
+        samples = samples or self.settings.samples_per_link
         e = self.elements
         c, a, r = (x[e.patch[ids]] for x in self.patch_curve)
-        h, rays = direct_irradiance(self.scene, e.verts[ids], self.normals(ids), (c, a, r),
-                                    samples=self.settings.samples_per_link, seed=self.settings.seed,
-                                    keys=ids)
+        h, err, rays = direct_irradiance(self.scene, e.verts[ids], self.normals(ids), (c, a, r),
+                                         samples=samples, seed=self.settings.seed + samples, keys=ids,
+                                         with_error=True)
         self.direct[ids] = h[:, : self.channels]
+        self.direct_error[ids] = err[:, : self.channels]
+        self.direct_samples[ids] = samples
         self.rays += rays
         self.timing["direct"] += time.perf_counter() - t
+
+    def direct_power_errors(self, leaves: np.ndarray) -> np.ndarray:
+        """(L,) sampling error of each leaf's direct light as power (W): A * rho * stderr(H)."""
+        e = self.elements
+        rho = self.patch_rho[e.patch[leaves]]
+        return e.area[leaves] * (rho * self.direct_error[leaves]).max(axis=1)
+
+    def direct_error_total(self, leaves: np.ndarray) -> float:
+        """Expected L1 error (W) of the per-patch means from direct-light sampling noise.
+
+        Independent leaf errors add in quadrature within a patch (they partly cancel in its
+        mean); the expected |N(0, s)| is s * sqrt(2 / pi).
+        """
+        if not self.scene.light_emitters:
+            return 0.0
+        power = self.direct_power_errors(leaves)
+        per_patch = np.bincount(self.elements.patch[leaves], weights=power * power)
+        return float(np.sqrt(2.0 / np.pi) * np.sqrt(per_patch).sum())
 
     # --- the linear system ------------------------------------------------------------------
     def solve(self, system: LeafSystem, x0: np.ndarray):
@@ -316,19 +342,26 @@ def solve_problem(scene: Scene, settings: Settings):
         estimated = _estimate(prob, b_elem, spread, b_mean)
         if estimated <= settings.tolerance:
             break
-        eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links), 1))
+        eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links) + len(leaves), 1))
         t = time.perf_counter()
-        refined, capped = _refine(prob, b_elem, spread, eps)
+        for _ in range(4):
+            resampled = _resample_direct(prob, leaves, eps)
+            refined, capped = _refine(prob, b_elem, spread, eps)
+            if refined or resampled or capped:
+                break
+            # nothing is above its share, yet the estimate is over the tolerance: lower the bar
+            eps /= 4.0
         prob.timing["refine"] += time.perf_counter() - t
         passes += 1
-        if refined:
+        if refined or resampled:
+            x0 = prob.b_elem_cache[prob.elements.leaves] if refined else b_leaf
             leaves = prob.elements.leaves
             system = prob.system(leaves)
-            b_leaf, iterations, residual = prob.solve(system, prob.b_elem_cache[leaves])
+            b_leaf, iterations, residual = prob.solve(system, x0)
             total_iterations += iterations
         bar.update(1)
         bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
-        if not refined or capped:
+        if not (refined or resampled) or capped:
             break
     # --- final estimate with fresh samples --------------------------------------------------
     # The oracle kept exactly the links whose samples looked smooth; estimating them from
@@ -371,6 +404,8 @@ def solve_problem(scene: Scene, settings: Settings):
     # per-leaf error map, W/m^2, scaled like the estimate: its area integral over
     # A_total * mean(B - E) is stats["estimated_error"]
     err_leaf = _error_scale(prob) * (system.push @ (per_elem / prob.elements.area))
+    if scene.light_emitters:
+        err_leaf += np.sqrt(2.0 / np.pi) * prob.direct_power_errors(leaves) / prob.elements.area[leaves]
     prob.timing["total"] = time.perf_counter() - t_start
     stats = {
         "elements": int(len(prob.elements)),
@@ -498,15 +533,37 @@ def _error_scale(prob: Problem) -> float:
 
 
 def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
-    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity).
+    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity),
+    plus the sampling error of the direct light from point/sky emitters.
 
     The ``bf`` oracle refines by its own measure, but its estimate uses the kernel errors
     (its F_hat says how large a transfer is, not how wrong).
     """
     oracle = "bound" if prob.settings.oracle == "bound" else "kernel"
     receiver, source = link_power_errors(prob, prob.links, b_elem, spread, oracle)
-    total = float(receiver.sum() + source.sum())
-    return _error_scale(prob) * total / max(prob.total_area * b_mean, 1e-300)
+    total = _error_scale(prob) * float(receiver.sum() + source.sum())
+    total += prob.direct_error_total(prob.elements.leaves)
+    return total / max(prob.total_area * b_mean, 1e-300)
+
+
+def _resample_direct(prob: Problem, leaves: np.ndarray, eps: float) -> bool:
+    """Re-estimate the direct light of leaves whose sampling error exceeds eps (W) with 4x the
+    points (up to MAX_DIRECT_SAMPLES); returns whether any was re-estimated.
+
+    Rays go where the variance is: a leaf in full sun or open sky is exact with few points,
+    one under a leaf layer's dappled shade needs many.
+    """
+    if not prob.scene.light_emitters:
+        return False
+    noisy = leaves[(prob.direct_power_errors(leaves) > eps) & (prob.direct_samples[leaves] < MAX_DIRECT_SAMPLES)]
+    for samples in np.unique(prob.direct_samples[noisy]):          # a few sample counts at most
+        ids = noisy[prob.direct_samples[noisy] == samples]
+        prob.update_direct(ids, samples=int(min(4 * samples, MAX_DIRECT_SAMPLES)))
+    return len(noisy) > 0
+
+
+#: Most points per element for the direct light of point/sky emitters.
+MAX_DIRECT_SAMPLES = 1024
 
 
 def _error_bound(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
