@@ -496,6 +496,14 @@ def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray, spread: n
         # not: its few area-drawn points would rarely land on the light that dominates
         lit = np.flatnonzero(cluster)[prob.cluster_emits[links.src[cluster] - prob.elements.first_cluster]]
         receiver[lit] = np.inf
+        # so is a cluster whose bounding sphere overlaps the receiver's (CLSS97: the bound is
+        # infinite): near patches drawn by area give a heavy-tailed estimate whose rows, once
+        # scaled back to at most 1, would lose energy
+        idx = np.flatnonzero(cluster)
+        rc, rr = prob.bounding_spheres(links.recv[idx])
+        sc, sr = prob.bounding_spheres(links.src[idx])
+        near = np.linalg.norm(rc - sc, axis=1) < rr + sr
+        receiver[idx[near]] = np.inf
     return receiver, source
 
 

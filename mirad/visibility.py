@@ -242,7 +242,10 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     y = triangle_point(sv0, sv1, sv2, us, vs)
 
     # --- unoccluded kernel: Lambert's form factor from x to the whole source triangle ---
-    front = dr.dot(sn, x - sv0) > 0
+    # (a point in, or within rounding of, the source's plane sees nothing of it: Lambert's
+    # formula is meaningless there, and coplanar pairs exchange exactly nothing)
+    in_plane = 0.1 * geo.offset
+    front = dr.dot(sn, x - sv0) > in_plane
     g = dr.select(front, point_to_triangle_dr(x, rn, sv0, sv1, sv2), 0.0)
     # the first three lanes also probe the receiver's (slightly inset) corners: random
     # samples rarely land there, yet corners next to other surfaces are where a coarse
@@ -250,7 +253,7 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     corner = dr.select(k == 0, rv0 * 0.9 + (rv1 + rv2) * 0.05,
                        dr.select(k == 1, rv1 * 0.9 + (rv0 + rv2) * 0.05, rv2 * 0.9 + (rv0 + rv1) * 0.05))
     corner = dr.select(k < 3, corner, x)
-    g_corner = dr.select(dr.dot(sn, corner - sv0) > 0, point_to_triangle_dr(corner, rn, sv0, sv1, sv2), 0.0)
+    g_corner = dr.select(dr.dot(sn, corner - sv0) > in_plane, point_to_triangle_dr(corner, rn, sv0, sv1, sv2), 0.0)
 
     # --- one shadow ray per lane, only where the kernel is non-zero and the link's --------
     # visibility is not already proven (shaft.py: 1 visible, 2 blocked)
@@ -287,7 +290,8 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     dr.eval(g_sum, k_sum, kv_sum, gv_sum, sq_sum, ff_max, g_hi, g_lo, n_traced)
     inv_n = 1.0 / n
     ks = k_sum.numpy().astype(np.float64)
-    vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 1.0)
+    # a link without a single valid sample pair (all across a plane) carries nothing
+    vis_np = np.where(ks > 0, kv_sum.numpy() / np.where(ks > 0, ks, 1.0), 0.0)
     ff_np = g_sum.numpy().astype(np.float64) * inv_n * vis_np
     gvm = gv_sum.numpy().astype(np.float64) * inv_n
     var = np.maximum(sq_sum.numpy().astype(np.float64) * inv_n - gvm * gvm, 0.0)
@@ -355,7 +359,7 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
     cos_y = -dr.dot(d, sn) / dr.select(dist > 0, dist, 1.0)
     # Lambert's form factor to the drawn patch over the probability of drawing it (its area
     # share): unbiased for the cluster's form factor, and bounded however close the patch is
-    front = dr.dot(sn, x - sv0) > 0
+    front = dr.dot(sn, x - sv0) > 0.1 * geo.offset
     f_patch = dr.select(front, point_to_triangle_dr(x, rn, sv0, sv1, sv2), 0.0)
     active = (dist > 0) & (cos_x > 0) & (cos_y > 0) & (f_patch > 0)
     g = dr.select(active, f_patch * a_cluster / dr.maximum(a_patch, 1e-30), 0.0)
