@@ -37,11 +37,13 @@ Pipeline, all links of a batch at once:
    seen from the receiver centre (``weighting="kernel"``) or uniformly (``"uniform"``: the
    exact visible fraction of section 5.1), normalised to sum 1;
 4. one batched zero-padded FFT convolution (scipy.fft) of every (link, layer) mask with
-   its kernel; V = prod_l clip(1 - O_l, 0, 1);
+   its kernel, for two mask sets: all hits and first hits; layers combine as a union
+   V = clip(1 - sum_l O_l^first, 0, 1) (default) or a product V = prod_l (1 - O_l^all);
 5. predicted error (visibility units, mean over the receiver): the residual penumbra-width
    error of each layer (depth spread and source tilt) over the penumbra it falls on, plus
-   the layer-combination error (the product against the bounds
-   max(0, sum V_l - (L - 1)) <= V <= min V_l).
+   the layer-combination error, estimated as the mean difference between the union and
+   the product models (the two ends of the correlation between layers; both lie within
+   the bounds max(0, sum V_l - (L - 1)) <= V <= min V_l of section 5.3).
 
 Functions here also give a ray-traced reference visibility (``ray_visibility``) and the
 glue for the solver (``TextureLinks``, ``apply_texture_links``).
@@ -293,7 +295,8 @@ def _convolve(masks: np.ndarray, kernels: np.ndarray, resolution: int, margin: i
 # ------------------------------------------------------------------------------------------
 
 def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64, *, layers="auto",
-                    max_layers: int = 8, max_hits: int = 4, weighting: str = "kernel") -> ShadowTextures:
+                    max_layers: int = 8, max_hits: int = 4, weighting: str = "kernel",
+                    combine: str = "union") -> ShadowTextures:
     """Shadow textures of M links receiver <- source.
 
     Parameters
@@ -316,11 +319,19 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     weighting : "kernel" or "uniform"
         Source image weighted by the point-to-point kernel from the receiver centre, or
         uniformly (exact visible fraction of section 5.1).
+    combine : "union" or "product"
+        How depth layers combine: "union" adds the occlusions of first-hit masks (the
+        occluders' union as seen from the source centre; exact where layers hide disjoint
+        parts of the source, and for one connected occluder split into layers), "product"
+        multiplies the layers' visibilities computed from all-hit masks (section 5.3,
+        exact where they hide independent parts).
 
     Returns
     -------
     ShadowTextures
     """
+    if combine not in ("union", "product"):
+        raise ValueError(f"combine must be 'union' or 'product', not {combine!r}")
     if weighting not in ("kernel", "uniform"):
         raise ValueError(f"weighting must be 'kernel' or 'uniform', not {weighting!r}")
     src = np.asarray(source_verts, dtype=np.float64)
@@ -379,10 +390,16 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     layer_of = np.floor((inv - inv_min[:, None]) / np.where(width > 0, width, 1.0)[:, None])
     layer_of = np.clip(np.nan_to_num(layer_of, nan=-1), -1, n_layers[:, None] - 1).astype(int)
     layer_of[~np.isfinite(inv)] = -1
-    masks = np.zeros((m, lmax, g * g), np.float32)
+    # two mask stacks: every hit (product model: layers block independent parts of the
+    # source) and the first hit seen from the source centre only (union model: layers
+    # block disjoint parts, occlusions add)
+    masks = np.zeros((2, m, lmax, g * g), np.float32)
     hit_link, hit_idx = np.nonzero(layer_of >= 0)
-    masks[hit_link, layer_of[hit_link, hit_idx], hit_idx // max_hits] = 1.0
-    masks = masks.reshape(m * lmax, g, g)
+    masks[0, hit_link, layer_of[hit_link, hit_idx], hit_idx // max_hits] = 1.0
+    first = (hit_idx % max_hits) == 0
+    hit_link, hit_idx = hit_link[first], hit_idx[first]
+    masks[1, hit_link, layer_of[hit_link, hit_idx], hit_idx // max_hits] = 1.0
+    masks = masks.reshape(2 * m * lmax, g, g)
     lo = inv_min[:, None] + width[:, None] * np.arange(lmax)[None]      # (M, L) layer 1/f ranges
     hi = lo + width[:, None]
     inv_star = 0.5 * (lo + hi)                                          # harmonic-mean depth
@@ -402,20 +419,23 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
         return (d_e[:, None] ** 2 / r2) ** 2
 
     kernels = _rasterise_kernels(rep(q2), scale.ravel(), rep(to_plane), r, margin, weight_fn)
-    occl = np.clip(_convolve(masks, kernels, r, margin), 0.0, 1.0).reshape(m, lmax, r, r)
-    v_layers = 1.0 - occl
+    kernels = np.concatenate([kernels, kernels])
+    occl = np.clip(_convolve(masks, kernels, r, margin), 0.0, 1.0).reshape(2, m, lmax, r, r)
     used = np.arange(lmax)[None] < n_layers[:, None]                   # (M, L)
-    v_layers[~used] = 1.0
-    vis = np.prod(v_layers, axis=1)
+    occl[:, ~used] = 0.0
+    v_layers = 1.0 - occl[0]
+    v_product = np.prod(v_layers, axis=1)
+    v_union = np.clip(1.0 - occl[1].sum(axis=1), 0.0, 1.0)
+    vis = v_union if combine == "union" else v_product
 
     # --- predicted error ---------------------------------------------------------------------
+    # combination: the two correlation models (independent / disjoint blocked parts of the
+    # source) bracket the usual cases; their difference estimates the combination error
+    # (both lie within max(0, sum V_l - (L - 1)) <= V <= min V_l, section 5.3)
     inside = _inside(rcv, r)
     cnt = np.maximum(inside.sum(axis=(1, 2)), 1)
     mean_in = lambda x: np.where(inside, x, 0.0).sum(axis=(1, 2)) / cnt  # noqa: E731
-    upper = v_layers.min(axis=1)
-    lower = np.maximum(0.0, v_layers.sum(axis=1) - (n_layers[:, None, None] - 1))
-    comb = np.maximum(upper - vis, vis - lower)
-    combination_error = mean_in(comb)
+    combination_error = mean_in(np.abs(v_product - v_union))
     penumbra = s[:, None] * (inv_star - 1.0)                            # (M, L) width p_l
     delta = 0.5 * s[:, None] * (hi - lo) + penumbra * tilt[:, None] / np.maximum(f_star * depth[:, None], 1e-12)
     rel_err = np.minimum(1.0, delta / np.maximum(penumbra, texel[:, None]))
