@@ -240,31 +240,33 @@ def _source_image(source_verts, src_centre, recv_centre, n):
     return proj - src_centre[:, None], depth, spread
 
 
-def _rasterise_kernels(q2, scale, to_plane, resolution: int, margin: int, weight_fn):
+def _rasterise_kernels(q2, scale, to_plane, resolution: int, margin: int, weight_fn, active=None):
     """Kernels (E, K, K), K = 2 margin + 1, summing to 1.
 
     q2 : (E, P, 2) source polygon corners (convex) in a 2D plane frame; scale : (E,) b/a;
-    to_plane : (E, 2, 2) maps a (du, dv) texel offset to the 2D plane offset; weight_fn maps
-    (E, S, 2) source points to weights.
+    to_plane : (E, 2, 2) maps a (du, dv) texel offset to the 2D plane offset; weight_fn(points
+    (E', S, 2), entries (E',)) gives the weights of source points; active : (E,) bool, entries
+    to rasterise (the others get a delta). Entries are grouped by kernel size (a loop over at
+    most log2(K) size classes): small kernels get SUPERSAMPLE^2 sub-samples per texel on a
+    small grid, large ones fewer.
     """
     e = len(q2)
     size = 2 * margin + 1
-    ss = SUPERSAMPLE
-    sub = (np.arange(size * ss) + 0.5) / ss - margin - 0.5              # offsets in texels
-    du, dv = np.meshgrid(sub, sub, indexing="ij")
-    duv = np.stack([du.ravel(), dv.ravel()], -1) / resolution           # (S, 2)
-    w_off = np.einsum("eab,sb->esa", to_plane, duv)                     # (E, S, 2) plane offsets
-    src_pt = -w_off / scale[:, None, None]                              # mirrored, scaled by a/b
-    # convex polygon test with the polygon's orientation
-    p0, p1 = q2, np.roll(q2, -1, axis=1)
-    area2 = np.sum(p0[..., 0] * p1[..., 1] - p1[..., 0] * p0[..., 1], axis=1)
-    sign = np.where(area2 >= 0, 1.0, -1.0)
-    edge = p1 - p0
-    rel = src_pt[:, :, None, :] - p0[:, None, :, :]
-    cross = edge[:, None, :, 0] * rel[..., 1] - edge[:, None, :, 1] * rel[..., 0]
-    inside = np.all(cross * sign[:, None, None] >= 0, axis=2)
-    w = np.where(inside, weight_fn(src_pt), 0.0)
-    kern = w.reshape(e, size, ss, size, ss).sum(axis=(2, 4))
+    kern = np.zeros((e, size, size))
+    kern[:, margin, margin] = 1.0
+    active = np.ones(e, bool) if active is None else np.asarray(active, bool)
+    # half-extent in texels of each kernel
+    from_plane = np.linalg.inv(to_plane)
+    ext = np.abs(np.einsum("eab,ekb->eka", from_plane, q2 * scale[:, None, None])).max(axis=(1, 2))
+    half = np.minimum(np.ceil(ext * resolution).astype(int) + 1, margin)
+    size_class = np.ceil(np.log2(np.maximum(half, 1))).astype(int)
+    for c in np.unique(size_class[active]):
+        sel = np.flatnonzero(active & (size_class == c))
+        hb = int(min(margin, 2 ** c))
+        ss = SUPERSAMPLE if hb <= 4 else (2 if hb <= 16 else 1)
+        kern[sel] = 0.0
+        kern[sel, margin - hb: margin + hb + 1, margin - hb: margin + hb + 1] = _raster(
+            q2[sel], scale[sel], to_plane[sel], resolution, hb, ss, lambda pts, sel=sel: weight_fn(pts, sel))
     total = kern.sum(axis=(1, 2))
     # a kernel smaller than the sub-samples (hard shadow): a delta at the centre
     empty = total <= 0
@@ -273,21 +275,45 @@ def _rasterise_kernels(q2, scale, to_plane, resolution: int, margin: int, weight
     return kern / total[:, None, None]
 
 
+def _raster(q2, scale, to_plane, resolution: int, hb: int, ss: int, weight_fn):
+    """Unnormalised (E, 2 hb + 1, 2 hb + 1) kernels with ss x ss sub-samples per texel."""
+    e = len(q2)
+    size = 2 * hb + 1
+    sub = (np.arange(size * ss) + 0.5) / ss - hb - 0.5                  # offsets in texels
+    du, dv = np.meshgrid(sub, sub, indexing="ij")
+    duv = np.stack([du.ravel(), dv.ravel()], -1) / resolution           # (S, 2)
+    w_off = np.einsum("eab,sb->esa", to_plane, duv)                     # (E, S, 2) plane offsets
+    src_pt = -w_off / scale[:, None, None]                              # mirrored, scaled by a/b
+    # convex polygon test with the polygon's orientation
+    p0, p1 = q2, np.roll(q2, -1, axis=1)
+    area2 = np.sum(p0[..., 0] * p1[..., 1] - p1[..., 0] * p0[..., 1], axis=1)
+    sign = np.where(area2 >= 0, 1.0, -1.0)
+    inside = np.ones(src_pt.shape[:2], bool)
+    for k in range(q2.shape[1]):                                         # polygon edges (3 or 4)
+        ex, ey = (p1[:, k] - p0[:, k]).T
+        rx = src_pt[..., 0] - p0[:, k, :1]
+        ry = src_pt[..., 1] - p0[:, k, 1:]
+        inside &= (ex[:, None] * ry - ey[:, None] * rx) * sign[:, None] >= 0
+    w = np.where(inside, weight_fn(src_pt), 0.0)
+    return w.reshape(e, size, ss, size, ss).sum(axis=(2, 4))
+
+
 # ------------------------------------------------------------------------------------------
 # Step 4: batched FFT convolution
 # ------------------------------------------------------------------------------------------
 
 def _convolve(masks: np.ndarray, kernels: np.ndarray, resolution: int, margin: int) -> np.ndarray:
-    """Linear convolution (zero-padded FFT) of (E, G, G) masks with (E, K, K) kernels, cropped to
-    the (E, R, R) receiver texels."""
-    g, k = masks.shape[1], kernels.shape[1]
+    """Linear convolution (zero-padded FFT) of (S, E, G, G) mask sets with (E, K, K) kernels
+    (transformed once for all S sets), cropped to the (S, E, R, R) receiver texels."""
+    g, k = masks.shape[-1], kernels.shape[-1]
     n = sfft.next_fast_len(g + k - 1, real=True)
+    fk = sfft.rfft2(kernels.astype(np.float32), s=(n, n), workers=-1)
     fm = sfft.rfft2(masks, s=(n, n), workers=-1)
-    fk = sfft.rfft2(kernels, s=(n, n), workers=-1)
-    full = sfft.irfft2(fm * fk, s=(n, n), workers=-1)
+    fm *= fk[None]
+    full = sfft.irfft2(fm, s=(n, n), workers=-1)
     # full index = mask index + kernel index; kernel centre at index margin, receiver texels at
     # mask indices margin .. margin + R - 1
-    return full[:, 2 * margin: 2 * margin + resolution, 2 * margin: 2 * margin + resolution]
+    return full[..., 2 * margin: 2 * margin + resolution, 2 * margin: 2 * margin + resolution]
 
 
 # ------------------------------------------------------------------------------------------
@@ -399,7 +425,6 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     first = (hit_idx % max_hits) == 0
     hit_link, hit_idx = hit_link[first], hit_idx[first]
     masks[1, hit_link, layer_of[hit_link, hit_idx], hit_idx // max_hits] = 1.0
-    masks = masks.reshape(2 * m * lmax, g, g)
     lo = inv_min[:, None] + width[:, None] * np.arange(lmax)[None]      # (M, L) layer 1/f ranges
     hi = lo + width[:, None]
     inv_star = 0.5 * (lo + hi)                                          # harmonic-mean depth
@@ -412,17 +437,20 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     rep = lambda a: np.repeat(a, lmax, axis=0)  # noqa: E731
     c2_e, d_e = rep(c2), rep(depth)
 
-    def weight_fn(pts):
+    def weight_fn(pts, sel):
         if weighting == "uniform":
             return np.ones(pts.shape[:2])
-        r2 = d_e[:, None] ** 2 + np.sum((c2_e[:, None] + pts) ** 2, axis=-1)
-        return (d_e[:, None] ** 2 / r2) ** 2
+        d2 = d_e[sel, None] ** 2
+        r2 = d2 + np.sum((c2_e[sel, None] + pts) ** 2, axis=-1)
+        return (d2 / r2) ** 2
 
-    kernels = _rasterise_kernels(rep(q2), scale.ravel(), rep(to_plane), r, margin, weight_fn)
-    kernels = np.concatenate([kernels, kernels])
-    occl = np.clip(_convolve(masks, kernels, r, margin), 0.0, 1.0).reshape(2, m, lmax, r, r)
+    kernels = _rasterise_kernels(rep(q2), scale.ravel(), rep(to_plane), r, margin, weight_fn,
+                                 active=(np.arange(lmax)[None] < n_layers[:, None]).ravel())
     used = np.arange(lmax)[None] < n_layers[:, None]                   # (M, L)
-    occl[:, ~used] = 0.0
+    run = np.flatnonzero(used.ravel())                                  # only the layers in use
+    occl = np.zeros((2, m * lmax, r, r))
+    occl[:, run] = np.clip(_convolve(masks.reshape(2, m * lmax, g, g)[:, run], kernels[run], r, margin), 0.0, 1.0)
+    occl = occl.reshape(2, m, lmax, r, r)
     v_layers = 1.0 - occl[0]
     v_product = np.prod(v_layers, axis=1)
     v_union = np.clip(1.0 - occl[1].sum(axis=1), 0.0, 1.0)

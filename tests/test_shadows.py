@@ -150,3 +150,19 @@ def test_texture_links_lookup_and_irradiance(parallel):
     h = links.irradiance(b)
     assert h.shape == (1, r, r, 2)
     assert np.allclose(h[0].mean(axis=(0, 1)), links.mean_irradiance(b)[0], rtol=1e-5)
+
+
+def test_batch_equals_single_links(parallel):
+    """Links of different sizes in one call (one mask launch, one FFT stack, a common margin)
+    give the textures of separate calls."""
+    scene, receiver, _ = parallel
+    small = square(0.4, 0.0, down=False) + np.array([0.6, 0.2, 0.0])
+    tilted_src = square(S_HALF, D)
+    tilted_src[:, 2] += np.array([0.0, 0.1, 0.1, 0.0])
+    src = np.stack([square(S_HALF, D), tilted_src])
+    rcv = np.stack([receiver, small])
+    batch = S.shadow_textures(scene, src, rcv, 32)
+    for k in range(2):
+        one = S.shadow_texture(scene, src[k], rcv[k], 32)
+        assert np.allclose(batch.texture[k], one.texture[0], atol=1e-4)
+        assert batch.ff[k] == pytest.approx(one.ff[0], rel=1e-4)
