@@ -166,3 +166,37 @@ def test_batch_equals_single_links(parallel):
         one = S.shadow_texture(scene, src[k], rcv[k], 32)
         assert np.allclose(batch.texture[k], one.texture[0], atol=1e-4)
         assert batch.ff[k] == pytest.approx(one.ff[0], rel=1e-4)
+
+
+def test_apply_texture_links_on_a_problem():
+    """The solver glue: texture links for the partly visible light -> floor links of the table
+    scene (triangle receivers), each link's transfer against a ray-sampled form factor."""
+    from conftest import SCENES
+    from mirad.settings import Settings
+    from mirad.solver import Problem
+
+    scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
+    prob = Problem(scene, Settings())
+    recv, src = prob.initial_pairs()
+    prob.links = prob.evaluate(recv, src, prob.geometry())
+    links, e = prob.links, prob.elements
+    lit = prob.patch_emission[e.patch[links.src]].max(axis=1) > 0
+    mask = lit & (links.vis > 0) & (links.vis < 1)
+    tl, accepted = S.apply_texture_links(prob, mask, resolution=32, tolerance=0.05)
+    assert accepted.sum() == len(tl) > 0
+    assert np.all(accepted <= mask)
+    rng = np.random.default_rng(5)
+    for k in range(len(tl)):
+        tri, light = e.verts[tl.recv[k]], e.verts[tl.src[k]]
+        a, b = rng.random((2, 2048))
+        flip = a + b > 1
+        a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+        pts = tri[0] + a[:, None] * (tri[1] - tri[0]) + b[:, None] * (tri[2] - tri[0])
+        normals = np.repeat(prob.normals(tl.recv[k:k + 1]), len(pts), 0)
+        vis, _ = S.ray_visibility(scene.mi_scene, light, pts, normals, rays=32, seed=k)
+        g = S._point_ff(pts, normals, np.repeat(light[None], len(pts), 0)) * vis
+        se = g.std() / np.sqrt(len(g))
+        assert abs(tl.ff[k] - g.mean()) < 3 * se + tl.ff_unoccluded[k] * tl.predicted_error[k]
+    # the matrix carries the mean transfers
+    m = tl.matrix(len(e))
+    assert np.isclose(m.sum(), tl.ff.sum())
