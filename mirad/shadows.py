@@ -58,12 +58,12 @@ import scipy.fft as sfft
 
 from . import _runtime  # noqa: F401
 from .formfactor import point_to_triangle_dr
-from .visibility import hash_u32, stratified, to_unit, triangle_point
+from .visibility import hash_u32, stratified, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "prefer_texture",
+__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "prefer_texture", "subdivision_cost",
            "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points"]
 
 #: Ray origins and ends are moved this fraction of the scene diagonal off the surfaces.
