@@ -143,6 +143,8 @@ class ShadowTextures:
                                     penumbra exceeds the largest kernel (texture unusable)
     depth_error, combination_error : (M,) float   the two parts of predicted_error
     layers : (M,) int               depth layers used
+    penumbra : (M,) float           narrowest layer penumbra width s (1/f - 1), metres (for
+                                    ``subdivision_cost``; inf where nothing occludes)
     occluded : (M,) bool            some mask ray hit an occluder
     rays : int                      mask rays traced
     """
@@ -157,6 +159,7 @@ class ShadowTextures:
     depth_error: np.ndarray
     combination_error: np.ndarray
     layers: np.ndarray
+    penumbra: np.ndarray
     occluded: np.ndarray
     rays: int
 
@@ -169,7 +172,7 @@ class ShadowTextures:
 
 
 _ST_FIELDS = ("texture", "point_ff", "inside", "ff_unoccluded", "mean_visibility", "ff", "predicted_error",
-              "depth_error", "combination_error", "layers", "occluded", "rays")
+              "depth_error", "combination_error", "layers", "penumbra", "occluded", "rays")
 
 
 # ------------------------------------------------------------------------------------------
@@ -480,7 +483,8 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     fv = mean_in(point_ff * vis)
     mean_vis = np.where(ff_unocc > 0, fv / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
     return ShadowTextures(vis.astype(np.float32), point_ff.astype(np.float32), inside, ff_unocc, mean_vis, fv,
-                          predicted, depth_error, combination_error, n_layers, occluded, rays)
+                          predicted, depth_error, combination_error, n_layers,
+                          np.where(occluded, np.where(used, penumbra, np.inf).min(axis=1), np.inf), occluded, rays)
 
 
 def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64, **kwargs) -> ShadowTextures:
