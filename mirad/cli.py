@@ -26,6 +26,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="linear solver (default gmres)")
     solve.add_argument("--oracle", choices=["kernel", "bf", "bound"], default=None,
                        help="refinement oracle (default kernel; bound: conservative, estimate is a bound)")
+    solve.add_argument("--shadow-textures", action="store_true",
+                       help="let partly visible links from lights carry a convolution shadow texture "
+                            "instead of splitting their receiver")
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
     solve.add_argument("--workers", type=int, default=None,
                        help="run the visibility waves on a local Dask cluster of N worker processes")
@@ -62,6 +65,7 @@ def _solve(args) -> int:
     _check_output(args.output, (".ply", ".npz"))
     sol = mirad.solve(args.scene, tolerance=args.tolerance, samples_per_link=args.samples_per_link,
                       seed=args.seed, solver=args.solver, oracle=args.oracle, variant=args.variant,
+                      shadow_textures=args.shadow_textures or None,
                       quiet=args.quiet, workers=args.workers, scheduler=args.scheduler)
     sol.save(args.output)
     if args.stats:

@@ -58,6 +58,11 @@ class Settings:
         (in numpy the test costs ~25 us per link, more than 16 shadow rays, so it does not
         pay for itself as a ray saving); "on"/"off" force it. Never in scenes with curved
         shapes (rays hit the true surface, not its tessellation).
+    shadow_textures : bool, default False
+        Links from emitters that are partly visible and would split may instead carry a
+        convolution shadow texture (shadows.py) when its predicted error fits their share of
+        the error budget: the receiver stays coarse. Per-triangle outputs use the texture's
+        mean transfer; renders and lightmaps do not show the texture's detail yet.
     solver_tolerance : float, default 1e-6
         Relative residual at which the linear solve stops.
     max_iterations : int, default 2000
@@ -98,6 +103,7 @@ class Settings:
     solver: str = "gmres"
     oracle: str = "kernel"
     shaft_culling: str = "auto"
+    shadow_textures: bool = False
     solver_tolerance: float = 1e-6
     max_iterations: int = 2000
     min_area: float = 1e-6

@@ -73,6 +73,7 @@ class Problem:
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
+        self.textures = []           # (recv, src, ff, vis, ff_std) of links given shadow textures
         self._executor = None   # Dask evaluator (distributed.py), made on the first wave
 
     def _add_clusters(self, verts: np.ndarray) -> None:
@@ -384,6 +385,7 @@ def solve_problem(scene: Scene, settings: Settings):
             # whether a cluster link was seen at all is judged on both sample sets, so the error
             # estimate does not swing with which links happen to miss their cluster this time
             prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
+            _restore_textures(prob)
             system = prob.system(leaves)
             b_leaf, iterations, residual = prob.solve(system, b_leaf)
             total_iterations += iterations
@@ -431,6 +433,7 @@ def solve_problem(scene: Scene, settings: Settings):
         "estimated_error_of_mean": estimated_of_mean,
         "error_bound": _error_bound(prob, b_elem, spread, reflected_mean),
         "oracle": settings.oracle,
+        "texture_links": int(np.count_nonzero(prob.links.vclass == TEXTURED)),
         "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
         "solver": settings.solver,
         "solver_iterations": int(total_iterations),
@@ -570,6 +573,68 @@ def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: flo
     return total / max(prob.total_area * b_mean, 1e-300)
 
 
+#: Links.vclass of links whose visibility is a shadow texture (shadows.py).
+TEXTURED = 3
+
+
+def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: float, b_elem: np.ndarray) -> None:
+    """Replace ray visibility by a convolution shadow texture (shadows.py) on links that would
+    otherwise split: partly visible links from emitters whose texture's predicted error, as
+    power, is within eps. Their receiver error becomes that prediction, so they stop
+    refining; ``error`` (over ``fresh``) is updated in place.
+    """
+    from .shadows import apply_texture_links
+
+    links, e = prob.links, prob.elements
+    src = links.src[fresh]
+    cand = ((error > eps) & (links.vclass[fresh] == 0) & (links.vis[fresh] > 0) & (links.vis[fresh] < 1)
+            & ~e.is_cluster(src))
+    cand[cand] &= prob.patch_emission[e.patch[src[cand]]].max(axis=1) > 0
+    if not cand.any():
+        return
+    t = time.perf_counter()
+    mask = np.zeros(len(links), bool)
+    mask[fresh[cand]] = True
+    tl, accepted = apply_texture_links(prob, mask, resolution=TEXTURE_RESOLUTION)
+    idx = np.flatnonzero(accepted)                      # link indices, in tl's order
+    rho_b = _max_rho_b(prob, links.select(idx), b_elem)
+    tex_error = e.area[links.recv[idx]] * rho_b * tl.ff_unoccluded * tl.predicted_error
+    ok = tex_error <= eps
+    idx, ff, ff_unocc = idx[ok], tl.ff[ok], tl.ff_unoccluded[ok]
+    links.ff[idx] = ff
+    links.vis[idx] = ff / np.maximum(ff_unocc, 1e-30)
+    # the kernel oracle reads the texture's predicted error through ff_std (see link_power_errors)
+    links.ff_std[idx] = ff_unocc * tl.predicted_error[ok] * np.sqrt(prob.settings.samples_per_link)
+    links.vclass[idx] = TEXTURED
+    prob.textures.append((links.recv[idx].astype(np.int64), links.src[idx].astype(np.int64),
+                          links.ff[idx].copy(), links.vis[idx].copy(), links.ff_std[idx].copy()))
+    local = np.searchsorted(fresh, idx)
+    error[local] = tex_error[ok]
+    prob.timing["textures"] = prob.timing.get("textures", 0.0) + time.perf_counter() - t
+
+
+def _restore_textures(prob: Problem) -> None:
+    """Put the stored texture transfers back on TEXTURED links after a re-evaluation."""
+    links = prob.links
+    textured = np.flatnonzero(links.vclass == TEXTURED)
+    if not len(textured) or not prob.textures:
+        return
+    n = len(prob.elements)
+    recv, src, ff, vis, std = (np.concatenate(x) for x in zip(*prob.textures))
+    key = recv * n + src
+    order = np.argsort(key, kind="stable")
+    want = links.recv[textured].astype(np.int64) * n + links.src[textured]
+    pos = np.clip(np.searchsorted(key[order], want), 0, len(key) - 1)
+    found = key[order][pos] == want
+    j = order[pos[found]]
+    t = textured[found]
+    links.ff[t], links.vis[t], links.ff_std[t] = ff[j], vis[j], std[j]
+
+
+#: Texels a side of the shadow textures made by the solver.
+TEXTURE_RESOLUTION = 32
+
+
 def _resample_direct(prob: Problem, leaves: np.ndarray, eps: float) -> bool:
     """Re-estimate the direct light of leaves whose sampling error exceeds eps (W) with 4x the
     points (up to MAX_DIRECT_SAMPLES); returns whether any was re-estimated.
@@ -650,6 +715,8 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         fresh = np.arange(checked, len(links))
         recv, src = links.recv[fresh], links.src[fresh]
         error, source_error = link_power_errors(prob, links.select(fresh), b_elem, spread)
+        if prob.settings.shadow_textures:
+            _texture_links(prob, fresh, error, eps, b_elem)
         can_split = (e.area > prob.min_area) | e.is_cluster(np.arange(len(e)))  # clusters always open
         split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],
                                               can_split[recv], can_split[src],
@@ -687,6 +754,7 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         new_recv = np.concatenate([pushed_recv[~inner], child])
         new_src = np.concatenate([pushed_src[~inner], pushed_src[inner][owner]])
         new_cls = np.concatenate([pushed_cls[~inner], pushed_cls[inner][owner]])
+        new_cls[new_cls == TEXTURED] = 0          # a texture belongs to its receiver: children re-decide
         # children of facing pairs: evaluate them all and drop the ones no sample point sees
         # (cheaper than a geometric facing test on every new pair)
         new_links = prob.evaluate(new_recv, new_src, prob.geometry(), vclass=new_cls)
