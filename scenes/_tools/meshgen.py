@@ -89,6 +89,25 @@ def merge(meshes):
     return np.concatenate(verts), np.concatenate(faces)
 
 
+def diamond_leaves(rng, centre: np.ndarray, length: float, width: float):
+    """Flat diamond leaves (2 triangles each) at centres (n, 3), inclined 0-70 degrees from up at
+    random azimuths (two draws of ``rng``): (4n, 3) vertices and the first and second triangle
+    of every leaf as two (n, 3) face arrays."""
+    n = len(centre)
+    incl = np.radians(rng.uniform(0, 70, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    normal = np.stack([np.sin(incl) * np.cos(az), np.sin(incl) * np.sin(az), np.cos(incl)], 1)
+    ref = np.where(np.abs(normal[:, 2:3]) < 0.9, [[0, 0, 1]], [[1, 0, 0]])
+    along = np.cross(normal, ref)
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    side = np.cross(normal, along)
+    tip, base = centre + along * length / 2, centre - along * length / 2
+    left, right = centre + side * width / 2, centre - side * width / 2
+    v = np.stack([base, right, tip, left], 1).reshape(-1, 3)
+    k = np.arange(n)[:, None] * 4
+    return v, k + [0, 1, 2], k + [0, 2, 3]
+
+
 def write_ply(path, mesh) -> int:
     """Binary little-endian PLY (float32 x y z; uchar/int32 faces). Returns the byte size."""
     v, f = mesh

@@ -28,7 +28,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "_tools"))
 
-from meshgen import diffuse, grid, ply_shape, sensor, write_ply  # noqa: E402
+from meshgen import diamond_leaves, diffuse, grid, ply_shape, sensor, write_ply  # noqa: E402
 
 LEAF_LENGTH, LEAF_WIDTH = 0.16, 0.07
 SPACING = 2.0          # m between plants
@@ -51,18 +51,8 @@ def leaves(rng, n: int, centre_xyz) -> tuple[np.ndarray, np.ndarray]:
     # crowns grow with their leaf count (about the leaf density of scenes/plant-canopy)
     crown = np.array(CROWN) * max(1.0, n / 210) ** (1 / 3)
     centre = np.asarray(centre_xyz) + d * r[:, None] * crown
-    incl = np.radians(rng.uniform(0, 70, n))
-    az = rng.uniform(0, 2 * np.pi, n)
-    normal = np.stack([np.sin(incl) * np.cos(az), np.sin(incl) * np.sin(az), np.cos(incl)], 1)
-    ref = np.where(np.abs(normal[:, 2:3]) < 0.9, [[0, 0, 1]], [[1, 0, 0]])
-    along = np.cross(normal, ref)
-    along /= np.linalg.norm(along, axis=1, keepdims=True)
-    side = np.cross(normal, along)
-    tip, base = centre + along * LEAF_LENGTH / 2, centre - along * LEAF_LENGTH / 2
-    left, right = centre + side * LEAF_WIDTH / 2, centre - side * LEAF_WIDTH / 2
-    v = np.stack([base, right, tip, left], 1).reshape(-1, 3)
-    k = np.arange(n)[:, None] * 4
-    f = np.stack([k + [0, 1, 2], k + [0, 2, 3]], 1).reshape(-1, 3)    # leaf j: faces 2j, 2j+1
+    v, first, second = diamond_leaves(rng, centre, LEAF_LENGTH, LEAF_WIDTH)
+    f = np.stack([first, second], 1).reshape(-1, 3)    # leaf j: faces 2j, 2j+1
     return v, f
 
 

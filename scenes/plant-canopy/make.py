@@ -16,7 +16,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "_tools"))
 
-from meshgen import diffuse, grid, ply_shape, sensor, write_ply  # noqa: E402
+from meshgen import diamond_leaves, diffuse, grid, ply_shape, sensor, write_ply  # noqa: E402
 
 LEAVES_PER_PLANT = 210
 PLANTS = [(0.0, 0.0, 1.3), (1.4, 0.6, 1.0), (-1.2, 0.9, 1.1), (0.5, -1.4, 0.9), (-0.9, -1.1, 1.2)]
@@ -31,19 +31,8 @@ def leaves(rng, cx, cy, height):
     r = rng.random(n) ** (1 / 3)
     centre = np.array([cx, cy, height]) + d * r[:, None] * np.array([0.45, 0.45, 0.35])
     # leaf frame: normal mostly upward (random inclination), random azimuth of the midrib
-    incl = np.radians(rng.uniform(0, 70, n))
-    az = rng.uniform(0, 2 * np.pi, n)
-    normal = np.stack([np.sin(incl) * np.cos(az), np.sin(incl) * np.sin(az), np.cos(incl)], 1)
-    ref = np.where(np.abs(normal[:, 2:3]) < 0.9, [[0, 0, 1]], [[1, 0, 0]])
-    along = np.cross(normal, ref)
-    along /= np.linalg.norm(along, axis=1, keepdims=True)
-    side = np.cross(normal, along)
-    tip, base = centre + along * LEAF_LENGTH / 2, centre - along * LEAF_LENGTH / 2
-    left, right = centre + side * LEAF_WIDTH / 2, centre - side * LEAF_WIDTH / 2
-    v = np.stack([base, right, tip, left], 1).reshape(-1, 3)
-    k = np.arange(n)[:, None] * 4
-    f = np.concatenate([k + [0, 1, 2], k + [0, 2, 3]])
-    return v, f
+    v, first, second = diamond_leaves(rng, centre, LEAF_LENGTH, LEAF_WIDTH)
+    return v, np.concatenate([first, second])
 
 
 def main() -> None:
