@@ -290,6 +290,15 @@ class Problem:
                               (np.concatenate([plain.recv, rows]), np.concatenate([plain.src, cols]))),
                              shape=(n, n))
 
+    def _cluster_row_stderr(self, n: int) -> np.ndarray:
+        """(n,) standard error of each receiver's summed cluster-link form factors."""
+        links = self.links
+        cluster = self.elements.is_cluster(links.src)
+        if not cluster.any():
+            return np.zeros(n)
+        var = links.ff_std[cluster].astype(np.float64) ** 2 / self.settings.samples_per_link
+        return np.sqrt(np.bincount(links.recv[cluster], weights=var, minlength=n))
+
     def system(self, leaves: np.ndarray) -> LeafSystem:
         e = self.elements
         push = e.ancestor_matrix(leaves)
@@ -300,10 +309,14 @@ class Problem:
         links = self._link_matrix()
         # Each link's visibility is estimated on its own, so behind occluders the sampled
         # form factors of one receiver can add up to a little more than 1 (up to ~9 % on the
-        # closed Cornell box); scale such rows back to 1 (energy is never created).
+        # closed Cornell box); scale such rows back to 1 (energy is never created). Cluster
+        # links are Monte Carlo estimates with a known spread: a row may exceed 1 by twice
+        # their standard error before it is scaled (clipping their noise at 1 would bias every
+        # row low: 11.5 % of the power was lost in a room with 1,000 small lights).
         row_sum = np.asarray(links.sum(axis=1)).ravel()
-        if np.any(row_sum > 1.0):
-            links = sp.diags(1.0 / np.maximum(row_sum, 1.0)) @ links
+        cap = 1.0 + 2.0 * self._cluster_row_stderr(len(row_sum))
+        if np.any(row_sum > cap):
+            links = sp.diags(1.0 / np.maximum(row_sum / cap, 1.0)) @ links
         return LeafSystem(push.tocsr(), links, pull.tocsr(), rho, emission)
 
 
@@ -499,14 +512,6 @@ def link_power_errors(prob: Problem, links: Links, b_elem: np.ndarray, spread: n
         # not: its few area-drawn points would rarely land on the light that dominates
         lit = np.flatnonzero(cluster)[prob.cluster_emits[links.src[cluster] - prob.elements.first_cluster]]
         receiver[lit] = np.inf
-        # so is a cluster whose bounding sphere overlaps the receiver's (CLSS97: the bound is
-        # infinite): near patches drawn by area give a heavy-tailed estimate whose rows, once
-        # scaled back to at most 1, would lose energy
-        idx = np.flatnonzero(cluster)
-        rc, rr = prob.bounding_spheres(links.recv[idx])
-        sc, sr = prob.bounding_spheres(links.src[idx])
-        near = np.linalg.norm(rc - sc, axis=1) < rr + sr
-        receiver[idx[near]] = np.inf
     return receiver, source
 
 

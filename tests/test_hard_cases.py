@@ -80,9 +80,6 @@ def _near_corner_triangles(scene):
     return np.flatnonzero(room & two_planes.any(axis=1))
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 at the default tolerance 0.03: 4 of 54 sampled corner "
-                   "triangles 4.2-5.3 % below the reference (reference sigma <= 0.6 %); was 8 of 54 before near "
-                   "clusters were always opened")
 def test_radiosity_at_90_degree_corners_matches_path_tracing(corner):
     scene, sol = corner
     tris = _near_corner_triangles(scene)[::3]
