@@ -305,7 +305,9 @@ class Problem:
         area = e.area
         pull = sp.diags(1.0 / area) @ push.T.tocsr() @ sp.diags(area[leaves])
         rho = self.rho(leaves)
-        emission = self.patch_emission[e.patch[leaves]] + rho * (push @ self.direct)
+        # direct light of point/sky emitters: each leaf's own estimate (a split parent keeps its
+        # old value, which must not be added on top of its children's)
+        emission = self.patch_emission[e.patch[leaves]] + rho * self.direct[leaves]
         links = self._link_matrix()
         # Each link's visibility is estimated on its own, so behind occluders the sampled
         # form factors of one receiver can add up to a little more than 1 (up to ~9 % on the
@@ -420,7 +422,7 @@ def solve_problem(scene: Scene, settings: Settings):
                       "raise it or the tolerance", stacklevel=2)
 
     # --- results --------------------------------------------------------------------------------
-    h_leaf = system.gather(b_leaf) + system.push @ prob.direct
+    h_leaf = system.gather(b_leaf) + prob.direct[leaves]
     # Error estimate (relative, the tolerance's norm): the summed power error of the links
     # (see link_power_errors) over A_total * mean(B - E); per leaf, the error density of the
     # links on it and its ancestors, W/m^2.
