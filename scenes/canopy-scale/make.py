@@ -11,7 +11,7 @@ Files are generated on demand (100k triangles is ~2.5 MB of PLY); the default ou
 ``scenes/canopy-scale/generated/`` is git-ignored.
 
     python scenes/canopy-scale/make.py --triangles 10000              # -> generated/canopy-10000/
-    python scenes/canopy-scale/make.py --plants 4 --leaves 125 --seed 3 --out /tmp/c
+    python scenes/canopy-scale/make.py --plants 4 --leaves 125 --seed 3 --out out/canopy
 
 From Python: ``make_canopy(out_dir, plants=..., leaves=..., seed=...)`` returns the XML path.
 """
