@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from .errors import SettingsError
 
 SOLVERS = ("gmres", "gauss-seidel", "jacobi")
-CLUSTERING = ("auto", "on", "off")
+SWITCHES = ("auto", "on", "off")
 ORACLES = ("kernel", "bf", "bound")
 
 
@@ -129,10 +129,10 @@ class Settings:
             )
         if self.solver not in SOLVERS:
             raise SettingsError(f"solver={self.solver!r} is unknown; choose one of {', '.join(SOLVERS)}")
-        if self.clustering not in CLUSTERING:
-            raise SettingsError(f"clustering={self.clustering!r} is unknown; choose one of {', '.join(CLUSTERING)}")
-        if self.shaft_culling not in CLUSTERING:
-            raise SettingsError(f"shaft_culling={self.shaft_culling!r} is unknown; choose one of {', '.join(CLUSTERING)}")
+        if self.clustering not in SWITCHES:
+            raise SettingsError(f"clustering={self.clustering!r} is unknown; choose one of {', '.join(SWITCHES)}")
+        if self.shaft_culling not in SWITCHES:
+            raise SettingsError(f"shaft_culling={self.shaft_culling!r} is unknown; choose one of {', '.join(SWITCHES)}")
         if self.oracle not in ORACLES:
             raise SettingsError(f"oracle={self.oracle!r} is unknown; choose one of {', '.join(ORACLES)}")
         if not (0.0 < self.solver_tolerance < 1.0):

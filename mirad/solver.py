@@ -175,9 +175,8 @@ class Problem:
             self._executor = DaskEvaluator(self.scene, workers=self.settings.workers,
                                            scheduler=self.settings.scheduler)
         run = evaluate_links if self._executor is None else self._executor.evaluate_links
-        wave = run(self.scene.mi_scene, geo, recv, src,
-                              samples=self.settings.samples_per_link, seed=seed, clusters=self.clusters,
-                              vclass=vclass)
+        wave = run(self.scene.mi_scene, geo, recv, src, samples=self.settings.samples_per_link, seed=seed,
+                   clusters=self.clusters, vclass=vclass)
         self.timing["visibility"] += time.perf_counter() - t
         self.rays += wave.rays
         # a proven-blocked link whose lanes all missed the kernel reads vis 1 by convention
@@ -430,11 +429,10 @@ def solve_problem(scene: Scene, settings: Settings):
     spread = _radiosity_spread(prob, system, b_elem)
     area_leaf = prob.elements.area[leaves]
     reflected_mean = _reflected_mean(prob, leaves, b_leaf)
-    estimated = _estimate(prob, b_elem, spread, reflected_mean)
+    per_link = _estimate_link_errors(prob, b_elem, spread)
+    estimated = _estimate(prob, b_elem, spread, reflected_mean, per_link)
     # the same error over the mean of B itself (emission included): the validation metric's norm
     estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
-    per_link = sum(link_power_errors(prob, prob.links, b_elem, spread,
-                                     "bound" if settings.oracle == "bound" else "kernel"))
     per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
     # per-leaf error map, W/m^2, scaled like the estimate: its area integral over
     # A_total * mean(B - E) is stats["estimated_error"]
@@ -565,21 +563,31 @@ def _error_scale(prob: Problem) -> float:
     solve (THEORY.md section 1), so the estimate is a bound as far as the link bounds are;
     otherwise the calibration measured against Mitsuba's path tracer.
     """
-    if prob.settings.oracle == "bound":
-        return 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
-    return ESTIMATE_CALIBRATION
+    return _amplification(prob) if prob.settings.oracle == "bound" else ESTIMATE_CALIBRATION
 
 
-def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float) -> float:
-    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity),
-    plus the sampling error of the direct light from point/sky emitters.
+def _amplification(prob: Problem) -> float:
+    """1 / (1 - rho_max): how much local transfer errors can grow through the solve."""
+    return 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
 
-    The ``bf`` oracle refines by its own measure, but its estimate uses the kernel errors
-    (its F_hat says how large a transfer is, not how wrong).
-    """
+
+def _estimate_link_errors(prob: Problem, b_elem: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """(M,) per-link power errors (W) the estimate sums: the ``bf`` oracle refines by its own
+    measure, but its estimate uses the kernel errors (its F_hat says how large a transfer is,
+    not how wrong)."""
     oracle = "bound" if prob.settings.oracle == "bound" else "kernel"
     receiver, source = link_power_errors(prob, prob.links, b_elem, spread, oracle)
-    total = _error_scale(prob) * float(receiver.sum() + source.sum())
+    return receiver + source
+
+
+def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float,
+              per_link: np.ndarray | None = None) -> float:
+    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity),
+    plus the sampling error of the direct light from point/sky emitters. ``per_link``: the
+    errors of ``_estimate_link_errors`` when already computed."""
+    if per_link is None:
+        per_link = _estimate_link_errors(prob, b_elem, spread)
+    total = _error_scale(prob) * float(per_link.sum())
     total += prob.direct_error_total(prob.elements.leaves)
     return total / max(prob.total_area * b_mean, 1e-300)
 
@@ -670,8 +678,7 @@ def _error_bound(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: 
     """The bound oracle's estimate (see _error_scale), whatever the oracle: loose where links
     are not classified (their lower bound is 0)."""
     receiver, source = link_power_errors(prob, prob.links, b_elem, spread, "bound")
-    scale = 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
-    return scale * float(receiver.sum() + source.sum()) / max(prob.total_area * b_mean, 1e-300)
+    return _amplification(prob) * float(receiver.sum() + source.sum()) / max(prob.total_area * b_mean, 1e-300)
 
 
 def _open_lit_clusters(prob: Problem) -> bool:
