@@ -28,6 +28,8 @@ import mitsuba as mi  # noqa: E402
 
 #: Locator rays start this fraction of the scene diagonal above the surface point.
 LOCATE_OFFSET = 1e-4
+#: Leaf slot of leaves without shadow-texture detail.
+NO_DETAIL = 0xFFFFFFFF
 #: Extra search depth below curved surfaces, relative to their radius (tessellation sagitta).
 CURVED_DEPTH = 0.05
 
@@ -117,6 +119,18 @@ class Shading:
         self.flat = [_float(b[:, c] / np.pi) for c in range(3)]
         corners = corner_values(solution, b) / np.pi                      # (L, 3, 3)
         self.corners = [_float(corners[:, :, c].reshape(-1)) for c in range(3)]
+        # shadow-texture detail (solver shadow_textures): a slot per leaf, bilinear textures
+        rows = solution.detail_leaves
+        self.detail_res = 0
+        if len(rows):
+            detail = np.asarray(a["leaf_detail"], np.float64)               # (T, R, R, C)
+            if detail.shape[3] == 1:
+                detail = np.repeat(detail, 3, axis=3)
+            slot = np.full(self.n_leaf, NO_DETAIL, np.uint32)
+            slot[rows] = np.arange(len(rows), dtype=np.uint32)
+            self.detail_slot = _uint(slot)
+            self.detail_res = detail.shape[1]
+            self.detail = [_float(detail[..., c].reshape(-1) / np.pi) for c in range(3)]
         # shape of each leaf, and Mitsuba shape pointer -> mirad shape index
         self.leaf_shape = _uint(a["triangle_shape"][tri])
         shapes = list(scene.mi_scene.shapes())
@@ -191,14 +205,20 @@ class Shading:
         shape = self.shape_index(si.shape)
         back = dr.dot(si.n, ray_d) > 0
         leaf, uv, found = self.locate(si.p, si.n, back, shape, active)
+        vals = [dr.gather(mi.Float, ch, leaf, found) for ch in self.flat]
+        textured = dr.zeros(mi.Bool, dr.width(leaf))
+        if self.detail_res:
+            # a leaf with shadow textures shows its own variation (flat value + texture detail),
+            # which interpolating between corners would count a second time
+            detail, textured = self.detail_radiance(leaf, uv, found)
+            vals = [v + d for v, d in zip(vals, detail)]
         if smooth:
             w0 = 1 - uv.x - uv.y
             base = leaf * 3
-            vals = [w0 * dr.gather(mi.Float, ch, base, found)
-                    + uv.x * dr.gather(mi.Float, ch, base + 1, found)
-                    + uv.y * dr.gather(mi.Float, ch, base + 2, found) for ch in self.corners]
-        else:
-            vals = [dr.gather(mi.Float, ch, leaf, found) for ch in self.flat]
+            vals = [dr.select(textured, v, w0 * dr.gather(mi.Float, ch, base, found)
+                              + uv.x * dr.gather(mi.Float, ch, base + 1, found)
+                              + uv.y * dr.gather(mi.Float, ch, base + 2, found))
+                    for v, ch in zip(vals, self.corners)]
         # fallback (no leaf found: a crack or a shape without elements): the shape side's mean
         safe = dr.minimum(shape, dr.width(self.shape_mean[0][0]) - 1)
         out = []
@@ -207,6 +227,26 @@ class Shading:
                              dr.gather(mi.Float, self.shape_mean[0][c], safe, active))
             out.append(dr.select(found, vals[c], mean))
         return mi.Color3f(*out), leaf, found
+
+    def detail_radiance(self, leaf, uv, found) -> list:
+        """Shadow-texture detail of the radiance (3 mi.Float) at leaf parameters uv (bilinear,
+        clamped at the texture border, as ``shadows.bilinear``; zero on leaves without), and
+        which points lie on leaves with detail (mi.Bool)."""
+        r = self.detail_res
+        slot = dr.gather(mi.UInt32, self.detail_slot, leaf, found)
+        has = found & (slot != NO_DETAIL)
+        x = dr.clip(uv.x * r - 0.5, 0.0, r - 1.0)
+        y = dr.clip(uv.y * r - 0.5, 0.0, r - 1.0)
+        i0 = dr.minimum(mi.UInt32(dr.floor(x)), max(r - 2, 0))
+        j0 = dr.minimum(mi.UInt32(dr.floor(y)), max(r - 2, 0))
+        tx, ty = x - mi.Float(i0), y - mi.Float(j0)
+        i1, j1 = dr.minimum(i0 + 1, r - 1), dr.minimum(j0 + 1, r - 1)
+        base = slot * (r * r)
+        out = []
+        for ch in self.detail:
+            g = lambda i, j, ch=ch: dr.gather(mi.Float, ch, base + i * r + j, has)  # noqa: E731
+            out.append(dr.lerp(dr.lerp(g(i0, j0), g(i0, j1), ty), dr.lerp(g(i1, j0), g(i1, j1), ty), tx))
+        return out, has
 
     def gathered_radiance(self, si, ray_d, leaf, found, active, *, rays: int, seed: int):
         """One bounce of final gathering: (E + rho * H(x)) / pi with H gathered from all leaves."""

@@ -244,6 +244,7 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None =
     """Radiosity (W/m^2) baked into a (resolution, resolution, 3) texture per shape with UVs
     (``quantity="error"``: the estimated error map instead, W/m^2).
 
+    Leaves with shadow textures (``shadow_textures=True``) show their shadow detail inside.
     Texel (row i, column j) covers u in [j, j+1)/R and v in [i, i+1)/R: row 0 is v = 0, as
     Mitsuba's ``bitmap`` texture reads it, so a map can texture the same shape directly. Each
     texel averages ``supersample``^2 points, each showing the radiosity of the leaf element under
@@ -277,11 +278,11 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None =
         if len(tris) == 0:
             continue
         maps[sid] = _bake_shape(solution, shading, s, tris, tri_uv[tris], b_leaf, b_tri,
-                                resolution, supersample, dilate)
+                                resolution, supersample, dilate, detail=quantity == "radiosity")
     return maps
 
 
-def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate):
+def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate, *, detail: bool):
     import drjit as dr
     import mitsuba as mi
 
@@ -326,11 +327,14 @@ def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate):
     value = b_tri[tri].copy()
     if len(p):
         f = lambda x: mi.Float(np.ascontiguousarray(x, np.float32))  # noqa: E731
-        leaf, _, found = shading.locate(
+        leaf, leaf_uv, found = shading.locate(
             mi.Point3f(f(p[:, 0]), f(p[:, 1]), f(p[:, 2])), mi.Vector3f(f(normal[:, 0]), f(normal[:, 1]), f(normal[:, 2])),
             dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), s, np.uint32)), mi.Bool(np.ones(len(p), bool)))
         leaf, found = np.asarray(leaf.numpy(), np.int64), np.asarray(found.numpy(), bool)
         value[found] = b_leaf[leaf[found]]
+        if detail and len(solution.detail_leaves):     # shadow-texture detail inside the leaf
+            leaf_uv = np.stack([np.asarray(leaf_uv.x.numpy()), np.asarray(leaf_uv.y.numpy())], 1)
+            value[found] += solution.detail_at(leaf[found], leaf_uv[found])
     # ---------------- texels: mean of their points, then edge dilation -------------------------
     texel = (gy // ss) * res + gx // ss
     channels = value.shape[1]

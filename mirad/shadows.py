@@ -64,7 +64,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 __all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "prefer_texture", "subdivision_cost",
-           "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points"]
+           "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear"]
 
 #: Ray origins and ends are moved this fraction of the scene diagonal off the surfaces.
 OFFSET = 1e-5
@@ -279,26 +279,26 @@ def _rasterise_kernels(q2, scale, to_plane, resolution: int, margin: int, weight
 
 
 def _raster(q2, scale, to_plane, resolution: int, hb: int, ss: int, weight_fn):
-    """Unnormalised (E, 2 hb + 1, 2 hb + 1) kernels with ss x ss sub-samples per texel."""
+    """Unnormalised (E, 2 hb + 1, 2 hb + 1) kernels with ss x ss sub-samples per texel (float32)."""
     e = len(q2)
     size = 2 * hb + 1
-    sub = (np.arange(size * ss) + 0.5) / ss - hb - 0.5                  # offsets in texels
-    du, dv = np.meshgrid(sub, sub, indexing="ij")
-    duv = np.stack([du.ravel(), dv.ravel()], -1) / resolution           # (S, 2)
-    w_off = np.einsum("eab,sb->esa", to_plane, duv)                     # (E, S, 2) plane offsets
-    src_pt = -w_off / scale[:, None, None]                              # mirrored, scaled by a/b
+    sub = ((np.arange(size * ss) + 0.5) / ss - hb - 0.5) / resolution   # offsets in (u, v)
+    du, dv = (x.ravel().astype(np.float32) for x in np.meshgrid(sub, sub, indexing="ij"))
+    # plane offsets of the sub-samples, mirrored and scaled by a/b: points of the source image
+    a = (-to_plane / scale[:, None, None]).astype(np.float32)            # (E, 2, 2)
+    x = a[:, 0, :1] * du + a[:, 0, 1:] * dv                              # (E, S)
+    y = a[:, 1, :1] * du + a[:, 1, 1:] * dv
     # convex polygon test with the polygon's orientation
+    q2 = q2.astype(np.float32)
     p0, p1 = q2, np.roll(q2, -1, axis=1)
     area2 = np.sum(p0[..., 0] * p1[..., 1] - p1[..., 0] * p0[..., 1], axis=1)
-    sign = np.where(area2 >= 0, 1.0, -1.0)
-    inside = np.ones(src_pt.shape[:2], bool)
+    sign = np.where(area2 >= 0, 1.0, -1.0).astype(np.float32)
+    inside = np.ones((e, len(du)), bool)
     for k in range(q2.shape[1]):                                         # polygon edges (3 or 4)
-        ex, ey = (p1[:, k] - p0[:, k]).T
-        rx = src_pt[..., 0] - p0[:, k, :1]
-        ry = src_pt[..., 1] - p0[:, k, 1:]
-        inside &= (ex[:, None] * ry - ey[:, None] * rx) * sign[:, None] >= 0
-    w = np.where(inside, weight_fn(src_pt), 0.0)
-    return w.reshape(e, size, ss, size, ss).sum(axis=(2, 4))
+        ex, ey = ((p1[:, k] - p0[:, k]) * sign[:, None]).T
+        inside &= ex[:, None] * (y - p0[:, k, 1:]) - ey[:, None] * (x - p0[:, k, :1]) >= 0
+    w = np.where(inside, weight_fn(np.stack([x, y], -1)), np.float32(0.0))
+    return w.reshape(e, size, ss, size, ss).sum(axis=(2, 4), dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------------------
@@ -400,6 +400,14 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     scale_hi = (1 - f_lo) / np.maximum(f_lo, 1e-6)
     extent_uv = np.abs(np.einsum("mab,mkb->mka", from_plane, q2 * scale_hi[:, None, None])).max(axis=(1, 2))
     need = np.ceil(extent_uv * r).astype(int) + 1
+    too_wide = need > cap
+    if too_wide.any():
+        # the penumbra is wider than the largest kernel (a small receiver far below its
+        # occluders): such a texture is unusable, and its margin would set the mask grid of
+        # every link in the batch; the others are computed on their own
+        return _without_wide(mi_scene, src, rcv, r, too_wide, f_probe.size,
+                             dict(layers=layers, max_layers=max_layers, max_hits=max_hits,
+                                  weighting=weighting, combine=combine))
     margin = int(min(cap, need.max()))
     hits, rays = _trace_depths(mi_scene, src_centre, o, e_u, e_v, r, margin, max_hits, offset)
     g = r + 2 * margin
@@ -443,16 +451,23 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     def weight_fn(pts, sel):
         if weighting == "uniform":
             return np.ones(pts.shape[:2])
-        d2 = d_e[sel, None] ** 2
-        r2 = d2 + np.sum((c2_e[sel, None] + pts) ** 2, axis=-1)
+        d2 = (d_e[sel, None] ** 2).astype(np.float32)
+        c = c2_e[sel].astype(np.float32)
+        r2 = d2 + (c[:, None, 0] + pts[..., 0]) ** 2 + (c[:, None, 1] + pts[..., 1]) ** 2
         return (d2 / r2) ** 2
 
     kernels = _rasterise_kernels(rep(q2), scale.ravel(), rep(to_plane), r, margin, weight_fn,
                                  active=(np.arange(lmax)[None] < n_layers[:, None]).ravel())
     used = np.arange(lmax)[None] < n_layers[:, None]                   # (M, L)
-    run = np.flatnonzero(used.ravel())                                  # only the layers in use
+    masks = masks.reshape(2, m * lmax, g, g)
     occl = np.zeros((2, m * lmax, r, r))
-    occl[:, run] = np.clip(_convolve(masks.reshape(2, m * lmax, g, g)[:, run], kernels[run], r, margin), 0.0, 1.0)
+    run = np.flatnonzero(used.ravel())                                  # only the layers in use
+    occl[0, run] = np.clip(_convolve(masks[:1, run], kernels[run], r, margin)[0], 0.0, 1.0)
+    # with one layer, first hits and all hits make the same mask
+    multi = np.flatnonzero((used & (n_layers[:, None] > 1)).ravel())
+    occl[1] = occl[0]
+    if len(multi):
+        occl[1, multi] = np.clip(_convolve(masks[1:, multi], kernels[multi], r, margin)[0], 0.0, 1.0)
     occl = occl.reshape(2, m, lmax, r, r)
     v_layers = 1.0 - occl[0]
     v_product = np.prod(v_layers, axis=1)
@@ -472,8 +487,7 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     rel_err = np.minimum(1.0, delta / np.maximum(penumbra, texel[:, None]))
     in_pen = ((v_layers > 1e-3) & (v_layers < 1 - 1e-3)).astype(float)  # (M, L, R, R)
     depth_error = mean_in((in_pen * (rel_err * used)[..., None, None]).max(axis=1))
-    too_wide = need > cap
-    predicted = np.where(too_wide, 1.0, depth_error + combination_error)
+    predicted = depth_error + combination_error
 
     # --- unoccluded point form factors and means ---------------------------------------------
     pts = receiver_points(rcv, r).reshape(-1, 3)
@@ -485,6 +499,31 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     return ShadowTextures(vis.astype(np.float32), point_ff.astype(np.float32), inside, ff_unocc, mean_vis, fv,
                           predicted, depth_error, combination_error, n_layers,
                           np.where(occluded, np.where(used, penumbra, np.inf).min(axis=1), np.inf), occluded, rays)
+
+
+def _without_wide(mi_scene, src, rcv, r: int, too_wide: np.ndarray, probe_rays: int, options: dict) -> ShadowTextures:
+    """``shadow_textures`` of a batch where the links ``too_wide`` get no texture (V = 1,
+    predicted error 1: unusable) and the others are computed on their own."""
+    m = len(src)
+    o, e_u, e_v = _edges(rcv)
+    n = np.cross(e_u, e_v)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    flip = np.einsum("mc,mc->m", src.mean(axis=1) - o, n) < 0
+    n[flip] *= -1.0
+    inside = _inside(rcv, r)
+    point_ff = _point_ff(receiver_points(rcv, r).reshape(-1, 3), np.repeat(n, r * r, axis=0),
+                         np.repeat(src, r * r, axis=0)).reshape(m, r, r)
+    ff_unocc = np.where(inside, point_ff, 0.0).sum(axis=(1, 2)) / np.maximum(inside.sum(axis=(1, 2)), 1)
+    out = ShadowTextures(np.ones((m, r, r), np.float32), point_ff.astype(np.float32), inside, ff_unocc,
+                         np.ones(m), ff_unocc.copy(), np.ones(m), np.ones(m), np.zeros(m), np.zeros(m, int),
+                         np.full(m, np.inf), np.ones(m, bool), probe_rays)
+    keep = np.flatnonzero(~too_wide)
+    if len(keep):
+        part = shadow_textures(mi_scene, src[keep], rcv[keep], r, **options)
+        for f in _ST_FIELDS[:-1]:
+            getattr(out, f)[keep] = getattr(part, f)
+        out.rays += part.rays
+    return out
 
 
 def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64, **kwargs) -> ShadowTextures:
@@ -602,6 +641,7 @@ class TextureLinks:
     ff : (K,) float                 transfer with visibility: mean over the receiver of point_ff V
                                     (= ff_unoccluded * kernel-weighted mean visibility)
     predicted_error : (K,) float
+    penumbra : (K,) float           narrowest penumbra width on the receiver, metres (inf: none)
     """
 
     recv: np.ndarray
@@ -612,9 +652,28 @@ class TextureLinks:
     ff_unoccluded: np.ndarray
     ff: np.ndarray
     predicted_error: np.ndarray
+    penumbra: np.ndarray
 
     def __len__(self) -> int:
         return len(self.recv)
+
+    @classmethod
+    def empty(cls, resolution: int) -> "TextureLinks":
+        r = int(resolution)
+        return cls(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, r, r), np.float32),
+                   np.zeros((0, r, r), np.float32), np.zeros((0, r, r), bool), np.zeros(0), np.zeros(0), np.zeros(0),
+                   np.zeros(0))
+
+    @classmethod
+    def concatenate(cls, parts, resolution: int) -> "TextureLinks":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty(resolution)
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in _TL_FIELDS))
+
+    def select(self, idx) -> "TextureLinks":
+        """The links ``idx`` (int array or bool mask)."""
+        return TextureLinks(*(getattr(self, f)[idx] for f in _TL_FIELDS))
 
     @property
     def resolution(self) -> int:
@@ -622,8 +681,19 @@ class TextureLinks:
 
     @property
     def nbytes(self) -> int:
-        return sum(getattr(self, f).nbytes for f in ("recv", "src", "visibility", "point_ff", "inside",
-                                                        "ff_unoccluded", "ff", "predicted_error"))
+        return sum(getattr(self, f).nbytes for f in _TL_FIELDS)
+
+    def detail(self, b_src: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        """(K, R, R, C) float32 radiosity detail of each link on its receiver, W/m^2:
+        rho * B_s * (F_unocc(texel) V(texel) - ff).
+
+        The link's mean transfer ff is already in its receiver's radiosity; this is how the
+        link's light varies around it (shadow and fall-off), with zero mean over the receiver's
+        texels, so adding it to the receiver's flat radiosity shows the shadow without moving
+        energy. b_src : (K, C) source radiosity; rho : (K, C) receiver reflectance.
+        """
+        varying = self.point_ff * self.visibility - self.ff[:, None, None].astype(np.float32)
+        return (varying[..., None] * (np.asarray(rho) * np.asarray(b_src))[:, None, None, :]).astype(np.float32)
 
     def irradiance(self, b_src: np.ndarray) -> np.ndarray:
         """(K, R, R, C) irradiance texture, W/m^2, from element radiosity b_src (N, C):
@@ -655,16 +725,34 @@ class TextureLinks:
         return g[:, None] * np.asarray(b_src)[self.src[link]]
 
     def _lookup(self, tex, link, uv):
-        r = self.resolution
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        link = np.broadcast_to(np.asarray(link), (len(uv),))
-        x = np.clip(uv * r - 0.5, 0.0, r - 1.0)
-        i0 = np.minimum(np.floor(x).astype(int), r - 2 if r > 1 else 0)
-        t = x - i0
-        i1 = np.minimum(i0 + 1, r - 1)
-        a = tex[link, i0[:, 0], i0[:, 1]] * (1 - t[:, 1]) + tex[link, i0[:, 0], i1[:, 1]] * t[:, 1]
-        b = tex[link, i1[:, 0], i0[:, 1]] * (1 - t[:, 1]) + tex[link, i1[:, 0], i1[:, 1]] * t[:, 1]
-        return (a * (1 - t[:, 0]) + b * t[:, 0]).astype(np.float64)
+        return bilinear(tex, link, uv)
+
+
+def bilinear(textures: np.ndarray, index, uv) -> np.ndarray:
+    """Bilinear lookup in (K, R, R[, C]) textures over a receiver's (u, v) parametrisation
+    (texel [i, j] centred at ((i + 1/2)/R, (j + 1/2)/R); clamped at the borders).
+
+    index : (P,) int, the texture of each point; uv : (P, 2). Returns (P[, C]) float64.
+
+    >>> bilinear(np.arange(4.0).reshape(1, 2, 2), [0, 0], [[0.25, 0.25], [0.5, 0.5]]).tolist()
+    [0.0, 1.5]
+    """
+    r = textures.shape[1]
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    index = np.broadcast_to(np.asarray(index), (len(uv),))
+    x = np.clip(uv * r - 0.5, 0.0, r - 1.0)
+    i0 = np.minimum(np.floor(x).astype(int), r - 2 if r > 1 else 0)
+    t = x - i0
+    i1 = np.minimum(i0 + 1, r - 1)
+    if textures.ndim == 4:
+        t = t[:, :, None]
+    a = textures[index, i0[:, 0], i0[:, 1]] * (1 - t[:, 1]) + textures[index, i0[:, 0], i1[:, 1]] * t[:, 1]
+    b = textures[index, i1[:, 0], i0[:, 1]] * (1 - t[:, 1]) + textures[index, i1[:, 0], i1[:, 1]] * t[:, 1]
+    return (a * (1 - t[:, 0]) + b * t[:, 0]).astype(np.float64)
+
+
+_TL_FIELDS = ("recv", "src", "visibility", "point_ff", "inside", "ff_unoccluded", "ff", "predicted_error",
+              "penumbra")
 
 
 def apply_texture_links(problem, mask, *, resolution: int = 32, tolerance: float | None = None,
@@ -680,15 +768,12 @@ def apply_texture_links(problem, mask, *, resolution: int = 32, tolerance: float
     mask = np.asarray(mask, bool) & ~e.is_cluster(links.src)
     idx = np.flatnonzero(mask)
     accepted = np.zeros(len(links), bool)
-    empty = TextureLinks(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, resolution, resolution),
-                         np.float32), np.zeros((0, resolution, resolution), np.float32),
-                         np.zeros((0, resolution, resolution), bool), np.zeros(0), np.zeros(0), np.zeros(0))
     if len(idx) == 0:
-        return empty, accepted
+        return TextureLinks.empty(resolution), accepted
     tex = shadow_textures(problem.scene.mi_scene, e.verts[links.src[idx]], e.verts[links.recv[idx]],
                           resolution, **kwargs)
     keep = np.ones(len(idx), bool) if tolerance is None else prefer_texture(tex.predicted_error, tolerance)
     accepted[idx[keep]] = True
     return TextureLinks(links.recv[idx[keep]].astype(np.int32), links.src[idx[keep]].astype(np.int32),
                         tex.texture[keep], tex.point_ff[keep], tex.inside[keep], tex.ff_unoccluded[keep],
-                        tex.ff[keep], tex.predicted_error[keep]), accepted
+                        tex.ff[keep], tex.predicted_error[keep], tex.penumbra[keep]), accepted

@@ -39,7 +39,7 @@ class Solution:
 
     # --- construction ---------------------------------------------------------------------
     @classmethod
-    def from_solve(cls, scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats) -> "Solution":
+    def from_solve(cls, scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=None) -> "Solution":
         e = prob.elements
         channels = scene.channels
         widen = (lambda x: np.repeat(x, channels, axis=1)) if b_leaf.shape[1] == 1 else (lambda x: x)
@@ -63,6 +63,10 @@ class Solution:
         }
         if scene.vertex_uv is not None:
             arrays["vertex_uv"] = scene.vertex_uv
+        if detail is not None and len(detail[0]):
+            rows, tex = detail
+            arrays["detail_leaf"] = np.asarray(rows, np.int32)
+            arrays["leaf_detail"] = np.repeat(tex, channels, axis=3) if tex.shape[3] == 1 else tex
         return cls(arrays=arrays, stats=stats, shape_ids=scene.shape_ids,
                    fingerprint=scene.fingerprint, scene=scene)
 
@@ -81,6 +85,37 @@ class Solution:
     def leaf_area(self) -> np.ndarray:
         v = self._a["leaf_verts"]
         return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    @property
+    def detail_leaves(self) -> np.ndarray:
+        """(T,) rows of the leaves that carry shadow-texture detail (empty without textures)."""
+        return self._a.get("detail_leaf", np.zeros(0, np.int32))
+
+    def detail_at(self, leaf, uv) -> np.ndarray:
+        """(P, C) shadow-texture detail of radiosity, W/m^2, at points with parameters uv (P, 2)
+        on leaves ``leaf`` (P,) (y = v0 + u (v1 - v0) + v (v2 - v0) over ``leaf_vertices``);
+        zero on leaves without texture links. Its mean over each leaf is zero: the leaf's
+        radiosity already holds the texture links' mean transfer."""
+        leaf = np.asarray(leaf, np.int64)
+        c = self._a["leaf_radiosity"].shape[1]
+        out = np.zeros((len(leaf), c))
+        rows = self.detail_leaves
+        if not len(rows) or not len(leaf):
+            return out
+        slot = np.full(len(self._a["leaf_radiosity"]), -1, np.int64)
+        slot[rows] = np.arange(len(rows))
+        k = slot[leaf]
+        has = k >= 0
+        if has.any():
+            from .shadows import bilinear
+
+            out[has] = bilinear(self._a["leaf_detail"], k[has], np.asarray(uv)[has])
+        return out
+
+    def radiosity_at(self, leaf, uv) -> np.ndarray:
+        """(P, C) radiosity at points (leaf (P,), uv (P, 2)): the leaf's value plus its shadow
+        detail (``detail_at``), W/m^2."""
+        return self._a["leaf_radiosity"][np.asarray(leaf, np.int64)] + self.detail_at(leaf, uv)
 
     # --- per triangle / shape / vertex --------------------------------------------------------
     def _per_patch(self, values: np.ndarray) -> np.ndarray:

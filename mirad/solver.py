@@ -73,7 +73,8 @@ class Problem:
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
-        self.textures = []           # (recv, src, ff, vis, ff_std) of links given shadow textures
+        self.textures = []           # (TextureLinks, ff_std) of links given shadow textures, per wave
+        self.texture_share = None    # (keys, error shares, n) of textured links (see _texture_links)
         self._executor = None   # Dask evaluator (distributed.py), made on the first wave
 
     def _add_clusters(self, verts: np.ndarray) -> None:
@@ -466,7 +467,9 @@ def solve_problem(scene: Scene, settings: Settings):
         "warnings": list(scene.warnings),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
-    return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats)
+    detail = _leaf_detail(prob, leaves, b_elem)
+    stats["detail_leaves"] = int(len(detail[0]))
+    return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=detail)
 
 
 #: Most rounds of (refinement passes, fresh re-estimate) in one solve.
@@ -618,36 +621,104 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
     idx = np.flatnonzero(accepted)                      # link indices, in tl's order
     rho_b = _max_rho_b(prob, links.select(idx), b_elem)
     tex_error = e.area[links.recv[idx]] * rho_b * tl.ff_unoccluded * tl.predicted_error
-    ok = tex_error <= eps
+    # A texture stands in for the subtree that subdivision would grow to resolve its shadow:
+    # elements about a penumbra wide, each link of which would be allowed eps. It gets their
+    # summed share (at most one element per texel); the estimate still sums its real error,
+    # so when the textures take too much, the estimate stays over the tolerance, eps falls and
+    # the texture's own error sends its receiver to split (children re-decide).
+    share = np.clip(e.area[links.recv[idx]] / np.maximum(tl.penumbra, 1e-30) ** 2, 1.0,
+                    TEXTURE_RESOLUTION ** 2 / 4)
+    ok = tex_error <= eps * share
     idx, ff, ff_unocc = idx[ok], tl.ff[ok], tl.ff_unoccluded[ok]
     links.ff[idx] = ff
     links.vis[idx] = ff / np.maximum(ff_unocc, 1e-30)
     # the kernel oracle reads the texture's predicted error through ff_std (see link_power_errors)
     links.ff_std[idx] = ff_unocc * tl.predicted_error[ok] * np.sqrt(prob.settings.samples_per_link)
     links.vclass[idx] = TEXTURED
-    prob.textures.append((links.recv[idx].astype(np.int64), links.src[idx].astype(np.int64),
-                          links.ff[idx].copy(), links.vis[idx].copy(), links.ff_std[idx].copy()))
+    prob.textures.append((tl.select(ok), links.ff_std[idx].copy()))
+    n = len(e)
+    prob.texture_share = _merge_keys(prob.texture_share, links.recv[idx].astype(np.int64) * n + links.src[idx],
+                                     share[ok], n)
     local = np.searchsorted(fresh, idx)
     error[local] = tex_error[ok]
+
+
+def _merge_keys(table, keys: np.ndarray, values: np.ndarray, n: int):
+    """(sorted keys, values, n) of link keys recv * n + src; later entries win. Keys made with
+    a smaller element count n are re-keyed (element ids never change, only their count)."""
+    if table is not None:
+        old_keys, old_values, old_n = table
+        if old_n != n:
+            old_keys = (old_keys // old_n) * n + old_keys % old_n
+        keys, values = np.concatenate([old_keys, keys]), np.concatenate([old_values, values])
+    keys, first = np.unique(keys[::-1], return_index=True)
+    return keys, values[::-1][first], n
+
+
+def _texture_error_share(prob: Problem, ids: np.ndarray) -> np.ndarray:
+    """(M,) error share of links ``ids``: a TEXTURED link's share from _texture_links, else 1."""
+    share = np.ones(len(ids))
+    links = prob.links
+    textured = np.flatnonzero(links.vclass[ids] == TEXTURED)
+    if not len(textured) or prob.texture_share is None:
+        return share
+    keys, values, n_old = prob.texture_share
+    n = len(prob.elements)
+    want = links.recv[ids[textured]].astype(np.int64) * n_old + links.src[ids[textured]]
+    pos = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
+    found = keys[pos] == want
+    share[textured[found]] = values[pos[found]]
+    return share
     prob.timing["textures"] = prob.timing.get("textures", 0.0) + time.perf_counter() - t
+
+
+def _textures_of_links(prob: Problem):
+    """The stored textures of the links that are TEXTURED now: (link indices (K,), TextureLinks
+    (K), ff_std (K,)), in the same order."""
+    from .shadows import TextureLinks
+
+    links = prob.links
+    textured = np.flatnonzero(links.vclass == TEXTURED)
+    if not len(textured) or not prob.textures:
+        return np.zeros(0, np.int64), TextureLinks.empty(TEXTURE_RESOLUTION), np.zeros(0)
+    n = len(prob.elements)
+    tl = TextureLinks.concatenate([t for t, _ in prob.textures], TEXTURE_RESOLUTION)
+    std = np.concatenate([s for _, s in prob.textures])
+    key = tl.recv.astype(np.int64) * n + tl.src
+    order = np.argsort(key, kind="stable")
+    want = links.recv[textured].astype(np.int64) * n + links.src[textured]
+    pos = np.clip(np.searchsorted(key[order], want, side="right") - 1, 0, len(key) - 1)  # latest texture
+    found = key[order][pos] == want
+    j = order[pos[found]]
+    return textured[found], tl.select(j), std[j]
 
 
 def _restore_textures(prob: Problem) -> None:
     """Put the stored texture transfers back on TEXTURED links after a re-evaluation."""
+    t, tl, std = _textures_of_links(prob)
     links = prob.links
-    textured = np.flatnonzero(links.vclass == TEXTURED)
-    if not len(textured) or not prob.textures:
-        return
-    n = len(prob.elements)
-    recv, src, ff, vis, std = (np.concatenate(x) for x in zip(*prob.textures))
-    key = recv * n + src
-    order = np.argsort(key, kind="stable")
-    want = links.recv[textured].astype(np.int64) * n + links.src[textured]
-    pos = np.clip(np.searchsorted(key[order], want), 0, len(key) - 1)
-    found = key[order][pos] == want
-    j = order[pos[found]]
-    t = textured[found]
-    links.ff[t], links.vis[t], links.ff_std[t] = ff[j], vis[j], std[j]
+    links.ff[t], links.ff_std[t] = tl.ff, std
+    links.vis[t] = tl.ff / np.maximum(tl.ff_unoccluded, 1e-30)
+
+
+def _leaf_detail(prob: Problem, leaves: np.ndarray, b_elem: np.ndarray):
+    """Shadow detail of the final texture links, summed per receiver leaf: (rows (T,) into
+    ``leaves``, detail (T, R, R, C) float32 W/m^2, zero mean over each leaf; see
+    TextureLinks.detail)."""
+    _, tl, _ = _textures_of_links(prob)
+    r = TEXTURE_RESOLUTION
+    if not len(tl):
+        return np.zeros(0, np.int32), np.zeros((0, r, r, prob.channels), np.float32)
+    row_of = np.full(len(prob.elements), -1, np.int64)
+    row_of[leaves] = np.arange(len(leaves))
+    rows = row_of[tl.recv]
+    keep = rows >= 0                       # textures live on leaves (links are pushed to leaves)
+    tl, rows = tl.select(keep), rows[keep]
+    detail = tl.detail(b_elem[tl.src], prob.rho(tl.recv))
+    unique, slot = np.unique(rows, return_inverse=True)
+    out = np.zeros((len(unique),) + detail.shape[1:], np.float32)
+    np.add.at(out, slot, detail)
+    return unique.astype(np.int32), out
 
 
 #: Texels a side of the shadow textures made by the solver.
@@ -735,6 +806,7 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         error, source_error = link_power_errors(prob, links.select(fresh), b_elem, spread)
         if prob.settings.shadow_textures:
             _texture_links(prob, fresh, error, eps, b_elem)
+            error = error / _texture_error_share(prob, fresh)   # a texture may hold its subtree's share
         can_split = (e.area > prob.min_area) | e.is_cluster(np.arange(len(e)))  # clusters always open
         split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],
                                               can_split[recv], can_split[src],

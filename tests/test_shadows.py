@@ -142,7 +142,7 @@ def test_texture_links_lookup_and_irradiance(parallel):
     _, _, tex = parallel
     r = RES
     links = S.TextureLinks(np.array([0], np.int32), np.array([1], np.int32), tex.texture, tex.point_ff,
-                           tex.inside, tex.ff_unoccluded, tex.ff, tex.predicted_error)
+                           tex.inside, tex.ff_unoccluded, tex.ff, tex.predicted_error, tex.penumbra)
     u, v = S.texel_uv(r)
     uv = np.stack([u.ravel(), v.ravel()], 1)
     assert np.allclose(links.visibility_at(np.zeros(len(uv), int), uv), tex.texture[0].ravel(), atol=1e-6)
