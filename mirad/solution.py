@@ -26,7 +26,8 @@ class Solution:
     back_radiosity : (T, C) float     back-side radiosity (zero where one-sided)
     triangle_area : (T,) float        m^2
     triangle_shape : (T,) int         index into shape_ids
-    vertex_radiosity : (V, C) float   smooth per-vertex radiosity (front side)
+    vertex_radiosity : (V, C) float   smooth per-vertex radiosity (front side), with the
+                                      shadow-texture detail at the vertex where a leaf has one
     stats : dict                      elements, links, rays, seconds, estimated_error, features, variant
     """
 
@@ -177,7 +178,28 @@ class Solution:
         w = np.repeat(area, 3)
         total = np.stack([np.bincount(idx, weights=w * np.repeat(b[:, c], 3), minlength=n_vert)
                           for c in range(b.shape[1])], 1)
+        total += self._vertex_detail(n_vert)
         return total / np.maximum(np.bincount(idx, weights=w, minlength=n_vert), 1e-300)[:, None]
+
+    def _vertex_detail(self, n_vert: int) -> np.ndarray:
+        """(V, C) triangle-area-weighted shadow-texture detail at the input vertices: for each
+        front-side textured leaf with a corner on a vertex of its triangle, the detail there."""
+        a = self._a
+        rows = self.detail_leaves
+        out = np.zeros((n_vert, a["leaf_radiosity"].shape[1]))
+        rows = rows[a["patch_side"][a["leaf_patch"][rows]] == 0]
+        if not len(rows):
+            return out
+        tri = a["patch_tri"][a["leaf_patch"][rows]]
+        corners = a["leaf_verts"][rows]                                     # (T, 3 corners, 3)
+        tri_verts = a["vertices"][a["faces"][tri]]                          # (T, 3 vertices, 3)
+        diag = float(np.linalg.norm(a["vertices"].max(0) - a["vertices"].min(0))) or 1.0
+        dist = np.linalg.norm(corners[:, :, None] - tri_verts[:, None], axis=-1)
+        t, k, j = np.nonzero(dist < 1e-9 * diag)
+        corner_uv = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+        detail = self.detail_at(rows[t], corner_uv[k])
+        np.add.at(out, a["faces"][tri[t], j], a["triangle_area"][tri[t], None] * detail)
+        return out
 
     def shape_radiosity(self, shape_id: str) -> np.ndarray:
         """(C,) area-weighted mean radiosity over the shape's front side, W/m^2."""

@@ -119,3 +119,21 @@ def test_lightmap_shows_the_texture_shadow_and_keeps_the_mean():
     assert abs(floor.mean() - mean) < 0.01 * mean
     centre = floor[28:36, 28:36].mean()                # under the table top (umbra)
     assert centre < 0.2 * mean
+
+
+def test_vertex_radiosity_carries_the_detail_at_textured_corners():
+    """PLY vertex colours: at floor corners inside textured leaves the vertex radiosity holds the
+    texture's fall-off, closer to a ray-traced gather there than the triangles' mean."""
+    scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
+    sol = mirad.solve(scene, tolerance=0.01, shadow_textures=True, quiet=True)
+    n_vert = len(sol.vertices)
+    textured = np.flatnonzero(np.abs(sol._vertex_detail(n_vert)).sum(1) > 0)
+    assert len(textured)
+    faces, area = sol.faces, sol.triangle_area
+    mean = np.bincount(faces.ravel(), weights=np.repeat(area * sol.triangle_radiosity[:, 0], 3), minlength=n_vert)
+    mean = (mean / np.maximum(np.bincount(faces.ravel(), weights=np.repeat(area, 3), minlength=n_vert), 1e-300))
+    pts = sol.vertices[textured] * 0.999                       # just inside the floor
+    ref = 0.5 * sol.irradiance_at(pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1)), rays=64)[:, 0]
+    shown = sol.vertex_radiosity[textured, 0]
+    assert np.all(shown >= 0)
+    assert np.all(np.abs(shown - ref) < np.abs(mean[textured] - ref))
