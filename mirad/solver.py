@@ -73,6 +73,8 @@ class Problem:
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
+        if settings.shadow_textures:
+            self.timing["textures"] = 0.0
         self.textures = []           # (TextureLinks, ff_std) of links given shadow textures, per wave
         self.texture_share = None    # (keys, error shares, n) of textured links (see _texture_links)
         self._executor = None   # Dask evaluator (distributed.py), made on the first wave
@@ -369,10 +371,11 @@ def solve_problem(scene: Scene, settings: Settings):
             while passes < settings.max_refine_passes:
                 b_elem = system.pull @ b_leaf
                 b_mean = _reflected_mean(prob, leaves, b_leaf)
-                budget = settings.tolerance / _error_scale(prob) * b_mean * prob.total_area
                 spread = _radiosity_spread(prob, system, b_elem)
-                if _estimate(prob, b_elem, spread, b_mean) <= settings.tolerance:
+                per_elem = _element_errors(prob, b_elem, spread)
+                if _estimate(prob, b_elem, spread, b_mean, per_elem) <= settings.tolerance:
                     break
+                budget = settings.tolerance / _error_scale(prob, b_elem, spread, per_elem) * b_mean * prob.total_area
                 eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links) + len(leaves), 1))
                 t = time.perf_counter()
                 for _ in range(4):
@@ -430,14 +433,13 @@ def solve_problem(scene: Scene, settings: Settings):
     spread = _radiosity_spread(prob, system, b_elem)
     area_leaf = prob.elements.area[leaves]
     reflected_mean = _reflected_mean(prob, leaves, b_leaf)
-    per_link = _estimate_link_errors(prob, b_elem, spread)
-    estimated = _estimate(prob, b_elem, spread, reflected_mean, per_link)
+    per_elem = _element_errors(prob, b_elem, spread)
+    estimated = _estimate(prob, b_elem, spread, reflected_mean, per_elem)
     # the same error over the mean of B itself (emission included): the validation metric's norm
     estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
-    per_elem = np.bincount(prob.links.recv, weights=per_link, minlength=len(prob.elements))
-    # per-leaf error map, W/m^2, scaled like the estimate: its area integral over
-    # A_total * mean(B - E) is stats["estimated_error"]
-    err_leaf = _error_scale(prob) * (system.push @ (per_elem / prob.elements.area))
+    # per-leaf error map, W/m^2: its area integral over A_total * mean(B - E) is
+    # stats["estimated_error"]
+    err_leaf = system.push @ (per_elem / prob.elements.area)
     if scene.light_emitters:
         err_leaf += np.sqrt(2.0 / np.pi) * prob.direct_power_errors(leaves) / prob.elements.area[leaves]
     prob.timing["total"] = time.perf_counter() - t_start
@@ -474,7 +476,8 @@ def solve_problem(scene: Scene, settings: Settings):
 
 #: Most rounds of (refinement passes, fresh re-estimate) in one solve.
 _MAX_ROUNDS = 3
-#: Measured error / summed link error on the validation scenes (see settings.py).
+#: Measured error / summed error of the smooth links and source terms on the validation
+#: scenes (see _element_errors and settings.py).
 ESTIMATE_CALIBRATION = 0.13
 
 
@@ -559,14 +562,19 @@ def _reflected_mean(prob: Problem, leaves: np.ndarray, b_leaf: np.ndarray) -> fl
     return _mean_radiosity(reflected, prob.elements.area[leaves])
 
 
-def _error_scale(prob: Problem) -> float:
-    """Factor from summed link power errors / (A_total * mean reflected B) to the estimate.
-
-    ``bound``: 1 / (1 - rho_max), the amplification of local transfer errors through the
-    solve (THEORY.md section 1), so the estimate is a bound as far as the link bounds are;
-    otherwise the calibration measured against Mitsuba's path tracer.
+def _error_scale(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, per_elem: np.ndarray) -> float:
+    """How much of the summed link power errors (the oracle's linear measure, which refinement
+    shares out among the links) the estimate counts: the estimate's link part ``per_elem``
+    (``_element_errors``) over that sum, so the budget matches the tolerance.
+    ``bound``: 1 / (1 - rho_max).
     """
-    return _amplification(prob) if prob.settings.oracle == "bound" else ESTIMATE_CALIBRATION
+    if prob.settings.oracle == "bound":
+        return _amplification(prob)
+    receiver, source = link_power_errors(prob, prob.links, b_elem, spread)
+    linear = float(np.sum(receiver + source))
+    if not np.isfinite(linear) or linear <= 0:
+        return ESTIMATE_CALIBRATION
+    return float(per_elem.sum()) / linear
 
 
 def _amplification(prob: Problem) -> float:
@@ -574,43 +582,69 @@ def _amplification(prob: Problem) -> float:
     return 1.0 / max(1.0 - float(prob.patch_rho.max()), 1e-3)
 
 
-def _estimate_link_errors(prob: Problem, b_elem: np.ndarray, spread: np.ndarray) -> np.ndarray:
-    """(M,) per-link power errors (W) the estimate sums: the ``bf`` oracle refines by its own
-    measure, but its estimate uses the kernel errors (its F_hat says how large a transfer is,
-    not how wrong)."""
-    oracle = "bound" if prob.settings.oracle == "bound" else "kernel"
-    receiver, source = link_power_errors(prob, prob.links, b_elem, spread, oracle)
-    return receiver + source
+def _element_errors(prob: Problem, b_elem: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """(N,) estimated power error (W) of the light each element gathers through its links.
+
+    ``bound``: 1 / (1 - rho_max) times the summed link bounds. Otherwise (the ``bf`` oracle
+    refines by its own measure, but its F_hat says how large a transfer is, not how wrong,
+    so it is estimated like ``kernel``) the kernel errors of link_power_errors, in two parts:
+
+    * links whose visibility is partial (0 < V < 1, not from a cluster: a shadow edge crosses
+      their sample domain, where stratified samples gain little over independent ones) carry
+      their standard error A rho B std(G v) / sqrt(n); a receiver's links draw independent
+      samples, so their errors add in quadrature, and sqrt(2/pi) turns the standard error
+      into an expected |error|;
+    * every other link (smooth integrands, where the stratified and low-discrepancy samples
+      do far better than std / sqrt(n)) and every source term are summed and scaled by
+      ESTIMATE_CALIBRATION, measured against Mitsuba's path tracer.
+    """
+    n = len(prob.elements)
+    links = prob.links
+    if prob.settings.oracle == "bound":
+        receiver, source = link_power_errors(prob, links, b_elem, spread, "bound")
+        return _amplification(prob) * np.bincount(links.recv, weights=receiver + source, minlength=n)
+    receiver, source = link_power_errors(prob, links, b_elem, spread, "kernel")
+    partial = (links.vis > 0) & (links.vis < 1) & ~prob.elements.is_cluster(links.src)
+    random = np.sqrt(np.bincount(links.recv[partial], weights=receiver[partial] ** 2, minlength=n))
+    smooth = np.bincount(links.recv, weights=np.where(partial, 0.0, receiver) + source, minlength=n)
+    return np.sqrt(2.0 / np.pi) * random + ESTIMATE_CALIBRATION * smooth
 
 
 def _estimate(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, b_mean: float,
-              per_link: np.ndarray | None = None) -> float:
-    """Estimated relative error: summed link power error / (A_total * mean reflected radiosity),
-    plus the sampling error of the direct light from point/sky emitters. ``per_link``: the
-    errors of ``_estimate_link_errors`` when already computed."""
-    if per_link is None:
-        per_link = _estimate_link_errors(prob, b_elem, spread)
-    total = _error_scale(prob) * float(per_link.sum())
-    total += prob.direct_error_total(prob.elements.leaves)
+              per_elem: np.ndarray | None = None) -> float:
+    """Estimated relative error: the elements' power errors (``_element_errors``, passed as
+    ``per_elem`` when already computed) plus the sampling error of the direct light from
+    point/sky emitters, over A_total * mean reflected radiosity."""
+    if per_elem is None:
+        per_elem = _element_errors(prob, b_elem, spread)
+    total = float(per_elem.sum()) + prob.direct_error_total(prob.elements.leaves)
     return total / max(prob.total_area * b_mean, 1e-300)
 
 
 #: Links.vclass of links whose visibility is a shadow texture (shadows.py).
 TEXTURED = 3
+#: Links.vclass marker, within one refinement wave, of ray-traced children of a textured link:
+#: they are texture candidates whatever their error, so a split receiver's shadow stays a
+#: texture on its children (where their texture fits the budget) instead of turning into
+#: a patchwork of textured and flat leaves.
+RETEXTURE = 4
 
 
 def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: float, b_elem: np.ndarray) -> None:
     """Replace ray visibility by a convolution shadow texture (shadows.py) on links that would
-    otherwise split: partly visible links from emitters whose texture's predicted error, as
-    power, is within eps. Their receiver error becomes that prediction, so they stop
-    refining; ``error`` (over ``fresh``) is updated in place.
+    otherwise split (and on the children of textured links, RETEXTURE): partly visible links
+    from emitters whose texture's predicted error, as power, is within their share of the
+    budget. Their receiver error becomes that prediction; ``error`` (over ``fresh``) is
+    updated in place.
     """
     from .shadows import apply_texture_links
 
     links, e = prob.links, prob.elements
     src = links.src[fresh]
-    cand = ((error > eps) & (links.vclass[fresh] == 0) & (links.vis[fresh] > 0) & (links.vis[fresh] < 1)
-            & ~e.is_cluster(src))
+    inherited = links.vclass[fresh] == RETEXTURE
+    links.vclass[fresh[inherited]] = 0                 # rays were traced; the class was a marker
+    cand = (((error > eps) & (links.vclass[fresh] == 0)) | inherited) & ~e.is_cluster(src)
+    cand &= (links.vis[fresh] > 0) & (links.vis[fresh] < 1)
     cand[cand] &= prob.patch_emission[e.patch[src[cand]]].max(axis=1) > 0
     if not cand.any():
         return
@@ -844,10 +878,13 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         new_recv = np.concatenate([pushed_recv[~inner], child])
         new_src = np.concatenate([pushed_src[~inner], pushed_src[inner][owner]])
         new_cls = np.concatenate([pushed_cls[~inner], pushed_cls[inner][owner]])
-        new_cls[new_cls == TEXTURED] = 0          # a texture belongs to its receiver: children re-decide
+        # a texture belongs to its receiver: children trace rays, then re-decide (RETEXTURE)
+        retexture = new_cls == TEXTURED
+        new_cls[retexture] = 0
         # children of facing pairs: evaluate them all and drop the ones no sample point sees
         # (cheaper than a geometric facing test on every new pair)
         new_links = prob.evaluate(new_recv, new_src, prob.geometry(), vclass=new_cls)
+        new_links.vclass[retexture & (new_links.vis > 0) & (new_links.vis < 1)] = RETEXTURE
         # (a cluster no sample saw is kept unless it lies wholly behind the receiver's plane)
         blind = np.flatnonzero((new_links.ff_max <= 0) & e.is_cluster(new_links.src))
         keep_new = new_links.ff_max > 0

@@ -4,6 +4,7 @@ import numpy as np
 
 import mirad
 from conftest import SCENES
+from mirad import shadows as S
 from mirad.solver import TEXTURED
 
 
@@ -75,8 +76,12 @@ def test_shadow_detail_shows_the_shadow_inside_coarse_leaves():
         shown = sol.radiosity_at(np.full(len(p), leaf), uv)[:, 0]
         err_flat, err_shown = np.abs(flat - ref).mean(), np.abs(shown - ref).mean()
         assert err_shown < err_flat / 3, (leaf, err_shown, err_flat)
-        detail = sol.detail_at(np.full(len(p), leaf), uv)[:, 0]
-        assert abs(detail.mean()) < 0.1 * np.abs(detail).mean() + 1e-3 * flat
+        # zero mean over the texel centres inside the leaf (the quadrature of the link's transfer)
+        u, v = S.texel_uv(sol._a["leaf_detail"].shape[1])
+        inside = (u + v <= 1.0).ravel()
+        texels = np.stack([u.ravel(), v.ravel()], 1)[inside]
+        detail = sol.detail_at(np.full(len(texels), leaf), texels)[:, 0]
+        assert abs(detail.mean()) < 1e-5 * np.abs(detail).max()
 
 
 def test_shadow_detail_is_shown_by_render_and_kept_by_save(tmp_path):
@@ -125,7 +130,7 @@ def test_vertex_radiosity_carries_the_detail_at_textured_corners():
     """PLY vertex colours: at floor corners inside textured leaves the vertex radiosity holds the
     texture's fall-off, closer to a ray-traced gather there than the triangles' mean."""
     scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
-    sol = mirad.solve(scene, tolerance=0.01, shadow_textures=True, quiet=True)
+    sol = mirad.solve(scene, tolerance=0.05, shadow_textures=True, quiet=True)
     n_vert = len(sol.vertices)
     textured = np.flatnonzero(np.abs(sol._vertex_detail(n_vert)).sum(1) > 0)
     assert len(textured)
