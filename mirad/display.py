@@ -57,8 +57,12 @@ def corner_values(solution, values: np.ndarray) -> np.ndarray:
     """(L, 3, C) per-corner values of every leaf for smooth display.
 
     Corners that coincide (same shape, side and position, and the same normal on flat shapes)
-    get the area-weighted mean of the leaf ``values`` (L, C) around them.
+    get the area-weighted mean of the leaf ``values`` around them: (L, C) one value per leaf,
+    or (L, 3, C) one per leaf corner.
     """
+    values = np.asarray(values)
+    if values.ndim == 2:
+        values = np.repeat(values[:, None], 3, axis=1)
     a = solution._a
     verts = a["leaf_verts"]
     n_leaf = len(verts)
@@ -75,10 +79,11 @@ def corner_values(solution, values: np.ndarray) -> np.ndarray:
     inverse = inverse.ravel()
     weight = np.repeat(solution.leaf_area, 3)
     n_key = inverse.max() + 1 if len(inverse) else 0
-    total = np.stack([np.bincount(inverse, weights=weight * np.repeat(values[:, c], 3), minlength=n_key)
-                      for c in range(values.shape[1])], 1)
+    c_count = values.shape[2]
+    total = np.stack([np.bincount(inverse, weights=weight * values[:, :, c].ravel(), minlength=n_key)
+                      for c in range(c_count)], 1)
     mean = total / np.maximum(np.bincount(inverse, weights=weight, minlength=n_key), 1e-300)[:, None]
-    return mean[inverse].reshape(n_leaf, 3, values.shape[1])
+    return mean[inverse].reshape(n_leaf, 3, c_count)
 
 
 class Shading:
@@ -117,7 +122,14 @@ class Shading:
         self.row_dr = [_uint(r) if len(r) else None for r in self.rows]
         # values per leaf (flat) and per leaf corner (smooth), radiance = B / pi
         self.flat = [_float(b[:, c] / np.pi) for c in range(3)]
-        corners = corner_values(solution, b) / np.pi                      # (L, 3, 3)
+        # a leaf with shadow-texture detail brings its value at each corner, not its mean,
+        # so the smooth leaves around a textured one meet its shadow instead of its average
+        at_corner = np.repeat(b[:, None], 3, axis=1)
+        rows = solution.detail_leaves
+        for k, uv in enumerate(((0.0, 0.0), (1.0, 0.0), (0.0, 1.0))):
+            d = solution.detail_at(rows, np.tile(uv, (len(rows), 1)))
+            at_corner[rows, k] += np.repeat(d, 3, axis=1) if d.shape[1] == 1 else d
+        corners = corner_values(solution, np.maximum(at_corner, 0.0)) / np.pi    # (L, 3, 3)
         self.corners = [_float(corners[:, :, c].reshape(-1)) for c in range(3)]
         # shadow-texture detail (solver shadow_textures): a slot per leaf, bilinear textures
         rows = solution.detail_leaves

@@ -64,7 +64,8 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 __all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "prefer_texture", "subdivision_cost",
-           "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear"]
+           "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear",
+           "narrowest_penumbra"]
 
 #: Ray origins and ends are moved this fraction of the scene diagonal off the surfaces.
 OFFSET = 1e-5
@@ -499,6 +500,24 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     return ShadowTextures(vis.astype(np.float32), point_ff.astype(np.float32), inside, ff_unocc, mean_vis, fv,
                           predicted, depth_error, combination_error, n_layers,
                           np.where(occluded, np.where(used, penumbra, np.inf).min(axis=1), np.inf), occluded, rays)
+
+
+def narrowest_penumbra(mi_scene, source_verts, receiver_verts, probe: int = 8) -> np.ndarray:
+    """(M,) width of the sharpest shadow detail on each receiver, metres (inf: no occluder seen):
+    s (1/f - 1) for the occluder hit nearest the receiver (largest fraction f along source
+    centre -> receiver point) among probe x probe rays per link, s the source's diameter.
+    Cheap (one Dr.Jit launch of probe^2 rays per link): tells whether a receiver spans
+    several penumbrae, where a texture beats subdivision, before building one."""
+    src = np.asarray(source_verts, dtype=np.float64)
+    rcv = np.asarray(receiver_verts, dtype=np.float64)
+    o, e_u, e_v = _edges(rcv)
+    bbox = mi_scene.bbox()
+    diag = float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0
+    hits, _ = _trace_depths(mi_scene, src.mean(axis=1), o, e_u, e_v, probe, 0, 1, OFFSET * diag)
+    f = hits[..., 0].reshape(len(src), -1)
+    f_max = np.where(np.isfinite(f), f, -np.inf).max(axis=1)
+    size = np.linalg.norm(src[:, :, None] - src[:, None], axis=-1).max(axis=(1, 2))
+    return np.where(f_max > 0, size * (1.0 / np.maximum(f_max, 1e-9) - 1.0), np.inf)
 
 
 def _without_wide(mi_scene, src, rcv, r: int, too_wide: np.ndarray, probe_rays: int, options: dict) -> ShadowTextures:

@@ -637,7 +637,7 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
     budget. Their receiver error becomes that prediction; ``error`` (over ``fresh``) is
     updated in place.
     """
-    from .shadows import apply_texture_links
+    from .shadows import apply_texture_links, narrowest_penumbra
 
     links, e = prob.links, prob.elements
     src = links.src[fresh]
@@ -649,6 +649,14 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
     if not cand.any():
         return
     t = time.perf_counter()
+    # a texture pays where the receiver spans several penumbrae; below that, a split or two
+    # resolves the shadow for less than a texture costs
+    ids = fresh[cand]
+    pen = narrowest_penumbra(prob.scene.mi_scene, e.verts[links.src[ids]], e.verts[links.recv[ids]])
+    cand[cand] = e.area[links.recv[ids]] >= TEXTURE_MIN_PENUMBRAE * pen ** 2
+    if not cand.any():
+        prob.timing["textures"] += time.perf_counter() - t
+        return
     mask = np.zeros(len(links), bool)
     mask[fresh[cand]] = True
     tl, accepted = apply_texture_links(prob, mask, resolution=TEXTURE_RESOLUTION)
@@ -703,7 +711,7 @@ def _texture_error_share(prob: Problem, ids: np.ndarray) -> np.ndarray:
     found = keys[pos] == want
     share[textured[found]] = values[pos[found]]
     return share
-    prob.timing["textures"] = prob.timing.get("textures", 0.0) + time.perf_counter() - t
+    prob.timing["textures"] += time.perf_counter() - t
 
 
 def _textures_of_links(prob: Problem):
@@ -757,6 +765,9 @@ def _leaf_detail(prob: Problem, leaves: np.ndarray, b_elem: np.ndarray):
 
 #: Texels a side of the shadow textures made by the solver.
 TEXTURE_RESOLUTION = 32
+#: A link is a texture candidate only if its receiver's area is at least this many squared
+#: widths of its sharpest penumbra (shadows.narrowest_penumbra).
+TEXTURE_MIN_PENUMBRAE = 1.0
 
 
 def _resample_direct(prob: Problem, leaves: np.ndarray, eps: float) -> bool:
