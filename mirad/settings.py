@@ -10,9 +10,12 @@ computes; relative to the mean of B itself, the error is smaller still).
 Every link p <- q gets an error in watts (see ``solver.link_power_errors``):
 ``A_p * rho_p * (B_q * std_k(G v) / sqrt(n) + F_pq * spread_q)``, the sampling
 error of its form factor plus the error of carrying the source's mean radiosity.
-Their sum over ``A_total * mean(B - E)``, times a calibration constant measured
-against Mitsuba's path tracer (``solver.ESTIMATE_CALIBRATION``), is
-``stats["estimated_error"]``. Multigridding passes refine every link whose error
+The estimate ``stats["estimated_error"]`` adds them per receiver
+(``solver._element_errors``): partly visible links (a shadow edge in their samples)
+in quadrature, times sqrt(2/pi); the other links and the source terms summed, times a
+calibration constant measured against Mitsuba's path tracer
+(``solver.ESTIMATE_CALIBRATION``); all over ``A_total * mean(B - E)``.
+Multigridding passes refine every link whose error
 exceeds ``link_error_scale * budget / (2 M)`` (M links, budget = the total error
 the tolerance allows), splitting the source when its term dominates, and re-solve,
 until the estimate is at or below ``tolerance``. Elements never split below

@@ -401,14 +401,14 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     scale_hi = (1 - f_lo) / np.maximum(f_lo, 1e-6)
     extent_uv = np.abs(np.einsum("mab,mkb->mka", from_plane, q2 * scale_hi[:, None, None])).max(axis=(1, 2))
     need = np.ceil(extent_uv * r).astype(int) + 1
-    too_wide = need > cap
-    if too_wide.any():
-        # the penumbra is wider than the largest kernel (a small receiver far below its
-        # occluders): such a texture is unusable, and its margin would set the mask grid of
-        # every link in the batch; the others are computed on their own
-        return _without_wide(mi_scene, src, rcv, r, too_wide, f_probe.size,
-                             dict(layers=layers, max_layers=max_layers, max_hits=max_hits,
-                                  weighting=weighting, combine=combine))
+    # Links whose penumbra is wider than the largest kernel (a small receiver far below its
+    # occluders) get no texture (group -1); the others are computed in groups of like margin,
+    # since the widest kernel of a batch sets the mask grid and FFT size of all its links
+    group = np.where(need > cap, -1, np.ceil(np.log2(np.maximum(need, 2))).astype(int))
+    if len(np.unique(group)) > 1 or group[0] < 0:
+        return _in_groups(mi_scene, src, rcv, r, group, f_probe.size,
+                          dict(layers=layers, max_layers=max_layers, max_hits=max_hits,
+                               weighting=weighting, combine=combine))
     margin = int(min(cap, need.max()))
     hits, rays = _trace_depths(mi_scene, src_centre, o, e_u, e_v, r, margin, max_hits, offset)
     g = r + 2 * margin
@@ -520,9 +520,9 @@ def narrowest_penumbra(mi_scene, source_verts, receiver_verts, probe: int = 8) -
     return np.where(f_max > 0, size * (1.0 / np.maximum(f_max, 1e-9) - 1.0), np.inf)
 
 
-def _without_wide(mi_scene, src, rcv, r: int, too_wide: np.ndarray, probe_rays: int, options: dict) -> ShadowTextures:
-    """``shadow_textures`` of a batch where the links ``too_wide`` get no texture (V = 1,
-    predicted error 1: unusable) and the others are computed on their own."""
+def _in_groups(mi_scene, src, rcv, r: int, group: np.ndarray, probe_rays: int, options: dict) -> ShadowTextures:
+    """``shadow_textures`` of a batch in groups: links of group -1 get no texture (V = 1,
+    predicted error 1: unusable), each other group is computed on its own."""
     m = len(src)
     o, e_u, e_v = _edges(rcv)
     n = np.cross(e_u, e_v)
@@ -536,8 +536,8 @@ def _without_wide(mi_scene, src, rcv, r: int, too_wide: np.ndarray, probe_rays: 
     out = ShadowTextures(np.ones((m, r, r), np.float32), point_ff.astype(np.float32), inside, ff_unocc,
                          np.ones(m), ff_unocc.copy(), np.ones(m), np.ones(m), np.zeros(m), np.zeros(m, int),
                          np.full(m, np.inf), np.ones(m, bool), probe_rays)
-    keep = np.flatnonzero(~too_wide)
-    if len(keep):
+    for g in np.unique(group[group >= 0]):
+        keep = np.flatnonzero(group == g)
         part = shadow_textures(mi_scene, src[keep], rcv[keep], r, **options)
         for f in _ST_FIELDS[:-1]:
             getattr(out, f)[keep] = getattr(part, f)

@@ -683,6 +683,7 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
                                      share[ok], n)
     local = np.searchsorted(fresh, idx)
     error[local] = tex_error[ok]
+    prob.timing["textures"] += time.perf_counter() - t
 
 
 def _merge_keys(table, keys: np.ndarray, values: np.ndarray, n: int):
@@ -711,7 +712,6 @@ def _texture_error_share(prob: Problem, ids: np.ndarray) -> np.ndarray:
     found = keys[pos] == want
     share[textured[found]] = values[pos[found]]
     return share
-    prob.timing["textures"] += time.perf_counter() - t
 
 
 def _textures_of_links(prob: Problem):
