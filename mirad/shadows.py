@@ -73,6 +73,8 @@ OFFSET = 1e-5
 MAX_MARGIN = 1.0
 #: Lanes per Dr.Jit launch of the mask rays.
 MAX_LANES = 1 << 22
+#: Links per batch of textures (memory: masks and spectra of a batch are a few hundred MB).
+BATCH_LINKS = 256
 #: Kernel supersampling per texel side.
 SUPERSAMPLE = 4
 #: A depth layer's penumbra-width spread may reach this many texels ("auto" layers).
@@ -369,6 +371,14 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     if src.ndim == 2:
         src, rcv = src[None], rcv[None]
     m, r = len(src), int(resolution)
+    if m > BATCH_LINKS:
+        # masks and spectra take ~ links x layers x (R + 2 margin)^2 floats: bound the wave
+        options = dict(layers=layers, max_layers=max_layers, max_hits=max_hits, weighting=weighting,
+                       combine=combine)
+        parts = [shadow_textures(mi_scene, src[i:i + BATCH_LINKS], rcv[i:i + BATCH_LINKS], r, **options)
+                 for i in range(0, m, BATCH_LINKS)]
+        return ShadowTextures(*(np.concatenate([getattr(p, f) for p in parts]) for f in _ST_FIELDS[:-1]),
+                              sum(p.rays for p in parts))
     o, e_u, e_v = _edges(rcv)
     n = np.cross(e_u, e_v)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
