@@ -81,6 +81,10 @@ class Settings:
         Largest number of multigridding passes (refine, then solve).
     max_elements : int, default 2_000_000
         Safety cap on the element count; refinement stops there with a warning.
+    max_links : int or None, default None
+        Safety cap on the link count (refinement stops before a wave would pass it, with a
+        warning); None: what half the machine's memory holds at ``solver.LINK_PEAK_BYTES``
+        per link (a solve's peak memory per link, wave temporaries included).
     clustering : str, default "auto"
         "on": every patch starts linked to the root of a bounding-volume hierarchy over the
         patches, opened by refinement (links grow ~linearly); "off": all facing pairs of
@@ -114,6 +118,7 @@ class Settings:
     link_error_scale: float = 5.0
     max_refine_passes: int = 12
     max_elements: int = 2_000_000
+    max_links: int | None = None
     clustering: str = "auto"
     cluster_threshold: int = 256
     variant: str | None = None
@@ -142,6 +147,9 @@ class Settings:
             raise SettingsError(f"solver_tolerance={self.solver_tolerance!r} must be in (0, 1), e.g. 1e-6")
         if self.max_iterations < 1 or self.max_refine_passes < 1 or self.max_elements < 1:
             raise SettingsError("max_iterations, max_refine_passes and max_elements must be >= 1")
+        if self.max_links is not None and (isinstance(self.max_links, bool) or int(self.max_links) != self.max_links
+                                           or self.max_links < 1):
+            raise SettingsError(f"max_links={self.max_links!r} must be an integer >= 1, or None (memory-based)")
         if not (0.0 < self.min_area < 1.0):
             raise SettingsError(f"min_area={self.min_area!r} must be in (0, 1) (relative to total area)")
         if self.link_error_scale <= 0:

@@ -11,6 +11,7 @@ See settings.py for how ``tolerance`` becomes the oracle threshold.
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 
@@ -73,6 +74,7 @@ class Problem:
         self.timing = {"link": 0.0, "refine": 0.0, "visibility": 0.0, "classify": 0.0, "solve": 0.0,
                        "direct": 0.0}
         self.classified = {"visible": 0, "blocked": 0, "tested": 0}
+        self.max_links = settings.max_links or _memory_max_links()
         if settings.shadow_textures:
             self.timing["textures"] = 0.0
         self.textures = []           # (TextureLinks, ff_std) of links given shadow textures, per wave
@@ -421,8 +423,10 @@ def solve_problem(scene: Scene, settings: Settings):
         if prob._executor is not None:
             prob._executor.close()
     if capped:
-        warnings.warn(f"refinement stopped at max_elements={settings.max_elements}; "
-                      "raise it or the tolerance", stacklevel=2)
+        warnings.warn(f"refinement stopped at max_elements={settings.max_elements} or max_links={prob.max_links:,} "
+                      f"({len(prob.elements):,} elements, {len(prob.links):,} links; max_links defaults to what half "
+                      "the memory holds); the estimate says how far from the tolerance it got: raise the tolerance, "
+                      "or the caps on a larger machine", stacklevel=2)
 
     # --- results --------------------------------------------------------------------------------
     h_leaf = system.gather(b_leaf) + prob.direct[leaves]
@@ -472,6 +476,20 @@ def solve_problem(scene: Scene, settings: Settings):
     detail = _leaf_detail(prob, leaves, b_elem)
     stats["detail_leaves"] = int(len(detail[0]))
     return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=detail)
+
+
+#: Peak memory of a solve per link, bytes (measured 215 on the Cornell box at tolerance 0.02,
+#: 11 M links; doubled for the temporaries of a large wave).
+LINK_PEAK_BYTES = 400
+
+
+def _memory_max_links() -> int:
+    """Links that half the machine's physical memory holds at LINK_PEAK_BYTES each."""
+    try:
+        memory = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):      # no sysconf (Windows): 16 GiB
+        memory = 16 << 30
+    return max(1, int(0.5 * memory / LINK_PEAK_BYTES))
 
 
 #: Most rounds of (refinement passes, fresh re-estimate) in one solve.
@@ -858,7 +876,10 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
                                               prefer_source=(source_error > error) | e.is_cluster(src))
         if not (split_src.any() or split_recv.any()):
             break
-        if len(e) >= prob.settings.max_elements:
+        # links the wave would add: four per split source, four per link into a split receiver
+        growth = 4 * (int(np.count_nonzero(split_src))
+                      + int(np.count_nonzero(np.isin(links.recv, recv[split_recv]))))
+        if len(e) >= prob.settings.max_elements or len(links) + growth > prob.max_links:
             capped = True
             break
         refined = True

@@ -163,3 +163,15 @@ def test_error_control_on_the_cornell_box_against_path_tracing(cornell, toleranc
     assert 0.5 * estimated <= measured <= 2.0 * estimated
     # the same estimate in the validation metric's norm (over mean B)
     assert 0.5 * sol.stats["estimated_error_of_mean"] <= l1 <= 2.0 * sol.stats["estimated_error_of_mean"]
+
+
+def test_link_cap_stops_refinement_with_a_warning_and_an_honest_estimate():
+    """max_links (by default what half the memory holds) stops refinement before a wave would
+    pass it: a warning names the cap, the links stay under it and the estimate says the
+    tolerance was not reached."""
+    with pytest.warns(UserWarning, match="max_links=20,000"):
+        sol = mirad.solve(SCENES / "cornell-box" / "scene.xml", tolerance=0.01, max_links=20_000, quiet=True)
+    assert sol.stats["capped"] and sol.stats["links"] <= 20_000
+    assert sol.stats["estimated_error"] > 0.01
+    with pytest.raises(mirad.errors.SettingsError, match="max_links"):
+        make_settings(max_links=0)
