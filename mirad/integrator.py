@@ -22,6 +22,10 @@
  * - gather_rays
    - |int|
    - Shadow rays per element in the final gather, >= 1. (Default: 4)
+ * - shadow_textures
+   - |bool|
+   - Solve with convolution shadow textures on links from lights that would otherwise split
+     their receiver; the pixels show the shadow inside the coarse element. (Default: false)
 
 Also accepted, as for every Mitsuba sampling integrator: ``hide_emitters``, ``block_size``,
 ``samples_per_pass``, ``timeout``. Any other property is an error naming it.
@@ -70,6 +74,7 @@ def _parameters() -> dict:
         "final_gather": (bool, False),
         "smooth": (bool, True),
         "gather_rays": (int, 4),
+        "shadow_textures": (bool, Settings.shadow_textures),
     }
 
 
@@ -133,6 +138,7 @@ def _make_class():
             self.final_gather = values["final_gather"]
             self.smooth = values["smooth"]
             self.gather_rays = values["gather_rays"]
+            self.shadow_textures = values["shadow_textures"]
             self._cache = {}  # id(mi.Scene) -> (mi.Scene, Shading)
 
         # --- the solution of a scene -----------------------------------------------------
@@ -165,7 +171,7 @@ def _make_class():
 
             loaded = load_scene(scene)
             sol = solve(loaded, tolerance=self.tolerance, samples_per_link=self.samples_per_link,
-                        seed=self.seed, variant=mi.variant())
+                        seed=self.seed, shadow_textures=self.shadow_textures, variant=mi.variant())
             shading = Shading(sol)
             self._remember(scene, shading)
             return shading
@@ -196,7 +202,8 @@ def _make_class():
         def to_string(self):
             return (f"RadiosityIntegrator[tolerance={self.tolerance}, samples_per_link="
                     f"{self.samples_per_link}, seed={self.seed}, final_gather={self.final_gather}, "
-                    f"smooth={self.smooth}, gather_rays={self.gather_rays}]")
+                    f"smooth={self.smooth}, gather_rays={self.gather_rays}, "
+                    f"shadow_textures={self.shadow_textures}]")
 
     RadiosityIntegrator.__doc__ = _DOC
     return RadiosityIntegrator

@@ -142,3 +142,24 @@ def test_vertex_radiosity_carries_the_detail_at_textured_corners():
     shown = sol.vertex_radiosity[textured, 0]
     assert np.all(shown >= 0)
     assert np.all(np.abs(shown - ref) < np.abs(mean[textured] - ref))
+
+
+def test_plugin_with_shadow_textures_shows_the_shadow():
+    """<boolean name="shadow_textures" value="true"/> in the radiosity integrator solves with
+    texture links, and its image of the table is closer to Mitsuba's path tracer (image L1)
+    than the ray-only solution's at the same tolerance, whose coarse floor smooths the umbra
+    away (measured 2026-11-23: 4.5 % against 15.6 %)."""
+    import mitsuba as mi
+
+    from mirad.reference import reference_image
+
+    scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
+    integrator = mi.load_dict({"type": "radiosity", "tolerance": 0.05, "shadow_textures": True})
+    assert "shadow_textures=True" in str(integrator)
+    image = np.array(mi.render(scene.mi_scene, integrator=integrator, spp=4))[..., 0]
+    sol = integrator.solution(scene.mi_scene)
+    assert sol.stats["texture_links"] > 0 and len(sol.detail_leaves) > 0
+    plain = mirad.render(scene, mirad.solve(scene, tolerance=0.05, quiet=True), spp=4)[..., 0]
+    ref = reference_image(scene, spp=64).image[..., 0]
+    l1 = lambda x: np.abs(x - ref).sum() / ref.sum()  # noqa: E731
+    assert l1(image) < 0.5 * l1(plain)
