@@ -520,6 +520,8 @@ def narrowest_penumbra(mi_scene, source_verts, receiver_verts, probe: int = 8) -
     several penumbrae, where a texture beats subdivision, before building one."""
     src = np.asarray(source_verts, dtype=np.float64)
     rcv = np.asarray(receiver_verts, dtype=np.float64)
+    if len(src) == 0:
+        return np.zeros(0)
     o, e_u, e_v = _edges(rcv)
     bbox = mi_scene.bbox()
     diag = float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0

@@ -669,9 +669,10 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
     t = time.perf_counter()
     # a texture pays where the receiver spans several penumbrae; below that, a split or two
     # resolves the shadow for less than a texture costs
-    ids = fresh[cand]
+    # (children of a textured link keep the texture's chance: their shadow is on screen already)
+    ids = fresh[cand & ~inherited]
     pen = narrowest_penumbra(prob.scene.mi_scene, e.verts[links.src[ids]], e.verts[links.recv[ids]])
-    cand[cand] = e.area[links.recv[ids]] >= TEXTURE_MIN_PENUMBRAE * pen ** 2
+    cand[cand & ~inherited] = e.area[links.recv[ids]] >= TEXTURE_MIN_PENUMBRAE * pen ** 2
     if not cand.any():
         prob.timing["textures"] += time.perf_counter() - t
         return
