@@ -125,8 +125,10 @@ class Shading:
         # a leaf with shadow-texture detail brings its value at each corner, not its mean,
         # so the smooth leaves around a textured one meet its shadow instead of its average
         at_corner = np.repeat(b[:, None], 3, axis=1)
+        from .solution import LEAF_CORNER_UV
+
         rows = solution.detail_leaves
-        for k, uv in enumerate(((0.0, 0.0), (1.0, 0.0), (0.0, 1.0))):
+        for k, uv in enumerate(LEAF_CORNER_UV):
             d = solution.detail_at(rows, np.tile(uv, (len(rows), 1)))
             at_corner[rows, k] += np.repeat(d, 3, axis=1) if d.shape[1] == 1 else d
         corners = corner_values(solution, np.maximum(at_corner, 0.0)) / np.pi    # (L, 3, 3)

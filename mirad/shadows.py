@@ -102,6 +102,21 @@ def _edges(verts: np.ndarray):
     return verts[:, 0], e_u, e_v
 
 
+def _frame(src: np.ndarray, rcv: np.ndarray):
+    """Receiver corner and edges (M, 3) and its unit normal (M, 3) turned towards the source."""
+    o, e_u, e_v = _edges(rcv)
+    n = np.cross(e_u, e_v)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    n[np.einsum("mc,mc->m", src.mean(axis=1) - o, n) < 0] *= -1.0
+    return o, e_u, e_v, n
+
+
+def _offset(mi_scene) -> float:
+    """Ray offset off the surfaces, metres: OFFSET times the scene diagonal."""
+    bbox = mi_scene.bbox()
+    return OFFSET * (float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0)
+
+
 def texel_uv(resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """(R, R) u and v of the texel centres (index [i, j] -> u_i, v_j).
 
@@ -168,6 +183,11 @@ class ShadowTextures:
 
     def __len__(self) -> int:
         return len(self.texture)
+
+    @classmethod
+    def concatenate(cls, parts) -> "ShadowTextures":
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in _ST_FIELDS[:-1]),
+                   sum(p.rays for p in parts))
 
     def __getitem__(self, k: int) -> "ShadowTextures":
         sl = slice(k, k + 1)
@@ -375,20 +395,12 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
         # masks and spectra take ~ links x layers x (R + 2 margin)^2 floats: bound the wave
         options = dict(layers=layers, max_layers=max_layers, max_hits=max_hits, weighting=weighting,
                        combine=combine)
-        parts = [shadow_textures(mi_scene, src[i:i + BATCH_LINKS], rcv[i:i + BATCH_LINKS], r, **options)
-                 for i in range(0, m, BATCH_LINKS)]
-        return ShadowTextures(*(np.concatenate([getattr(p, f) for p in parts]) for f in _ST_FIELDS[:-1]),
-                              sum(p.rays for p in parts))
-    o, e_u, e_v = _edges(rcv)
-    n = np.cross(e_u, e_v)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return ShadowTextures.concatenate([shadow_textures(mi_scene, src[i:i + BATCH_LINKS], rcv[i:i + BATCH_LINKS],
+                                                          r, **options) for i in range(0, m, BATCH_LINKS)])
+    o, e_u, e_v, n = _frame(src, rcv)
     src_centre = src.mean(axis=1)
     recv_centre = o + (e_u + e_v) * (1 / 3 if rcv.shape[1] == 3 else 0.5)
-    flip = np.einsum("mc,mc->m", src_centre - o, n) < 0
-    n[flip] *= -1.0
-    bbox = mi_scene.bbox()
-    diag = float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0
-    offset = OFFSET * diag
+    offset = _offset(mi_scene)
 
     # --- source image and sizes --------------------------------------------------------------
     q, depth, tilt = _source_image(src, src_centre, recv_centre, n)
@@ -501,9 +513,7 @@ def shadow_textures(mi_scene, source_verts, receiver_verts, resolution: int = 64
     predicted = depth_error + combination_error
 
     # --- unoccluded point form factors and means ---------------------------------------------
-    pts = receiver_points(rcv, r).reshape(-1, 3)
-    normals = np.repeat(n, r * r, axis=0)
-    point_ff = _point_ff(pts, normals, np.repeat(src, r * r, axis=0)).reshape(m, r, r)
+    point_ff = _texel_ff(src, rcv, n, r)
     ff_unocc = mean_in(point_ff)
     fv = mean_in(point_ff * vis)
     mean_vis = np.where(ff_unocc > 0, fv / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
@@ -523,9 +533,7 @@ def narrowest_penumbra(mi_scene, source_verts, receiver_verts, probe: int = 8) -
     if len(src) == 0:
         return np.zeros(0)
     o, e_u, e_v = _edges(rcv)
-    bbox = mi_scene.bbox()
-    diag = float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0
-    hits, _ = _trace_depths(mi_scene, src.mean(axis=1), o, e_u, e_v, probe, 0, 1, OFFSET * diag)
+    hits, _ = _trace_depths(mi_scene, src.mean(axis=1), o, e_u, e_v, probe, 0, 1, _offset(mi_scene))
     f = hits[..., 0].reshape(len(src), -1)
     f_max = np.where(np.isfinite(f), f, -np.inf).max(axis=1)
     size = np.linalg.norm(src[:, :, None] - src[:, None], axis=-1).max(axis=(1, 2))
@@ -536,14 +544,8 @@ def _in_groups(mi_scene, src, rcv, r: int, group: np.ndarray, probe_rays: int, o
     """``shadow_textures`` of a batch in groups: links of group -1 get no texture (V = 1,
     predicted error 1: unusable), each other group is computed on its own."""
     m = len(src)
-    o, e_u, e_v = _edges(rcv)
-    n = np.cross(e_u, e_v)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    flip = np.einsum("mc,mc->m", src.mean(axis=1) - o, n) < 0
-    n[flip] *= -1.0
     inside = _inside(rcv, r)
-    point_ff = _point_ff(receiver_points(rcv, r).reshape(-1, 3), np.repeat(n, r * r, axis=0),
-                         np.repeat(src, r * r, axis=0)).reshape(m, r, r)
+    point_ff = _texel_ff(src, rcv, _frame(src, rcv)[3], r)
     ff_unocc = np.where(inside, point_ff, 0.0).sum(axis=(1, 2)) / np.maximum(inside.sum(axis=(1, 2)), 1)
     out = ShadowTextures(np.ones((m, r, r), np.float32), point_ff.astype(np.float32), inside, ff_unocc,
                          np.ones(m), ff_unocc.copy(), np.ones(m), np.ones(m), np.zeros(m), np.zeros(m, int),
@@ -555,6 +557,13 @@ def _in_groups(mi_scene, src, rcv, r: int, group: np.ndarray, probe_rays: int, o
             getattr(out, f)[keep] = getattr(part, f)
         out.rays += part.rays
     return out
+
+
+def _texel_ff(src: np.ndarray, rcv: np.ndarray, n: np.ndarray, r: int) -> np.ndarray:
+    """(M, R, R) unoccluded point form factor from each receiver texel centre (normal n) to its
+    source."""
+    pts = receiver_points(rcv, r).reshape(-1, 3)
+    return _point_ff(pts, np.repeat(n, r * r, axis=0), np.repeat(src, r * r, axis=0)).reshape(len(src), r, r)
 
 
 def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64, **kwargs) -> ShadowTextures:
@@ -595,8 +604,7 @@ def ray_visibility(mi_scene, source_verts, points, normals, *, rays: int = 256, 
     src = np.asarray(source_verts, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
     p = len(points)
-    bbox = mi_scene.bbox()
-    offset = OFFSET * (float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0)
+    offset = _offset(mi_scene)
     lane = dr.arange(mi.UInt32, p * rays)
     pt = lane // rays
     k = lane % rays

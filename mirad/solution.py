@@ -15,6 +15,10 @@ from .errors import OutputError, SolutionMismatch
 FORMAT = 1
 
 
+#: (u, v) of a leaf's corners v0, v1, v2 in its parametrisation y = v0 + u (v1 - v0) + v (v2 - v0).
+LEAF_CORNER_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+
 class Solution:
     """Radiosity solution of one scene (units: W/m^2; radiance = radiosity / pi).
 
@@ -196,8 +200,7 @@ class Solution:
         diag = float(np.linalg.norm(a["vertices"].max(0) - a["vertices"].min(0))) or 1.0
         dist = np.linalg.norm(corners[:, :, None] - tri_verts[:, None], axis=-1)
         t, k, j = np.nonzero(dist < 1e-9 * diag)
-        corner_uv = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-        detail = self.detail_at(rows[t], corner_uv[k])
+        detail = self.detail_at(rows[t], LEAF_CORNER_UV[k])
         np.add.at(out, a["faces"][tri[t], j], a["triangle_area"][tri[t], None] * detail)
         return out
 

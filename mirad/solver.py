@@ -77,8 +77,7 @@ class Problem:
         self.max_links = settings.max_links or _memory_max_links()
         if settings.shadow_textures:
             self.timing["textures"] = 0.0
-        self.textures = []           # (TextureLinks, ff_std) of links given shadow textures, per wave
-        self.texture_share = None    # (keys, error shares, n) of textured links (see _texture_links)
+        self.textures = []           # (TextureLinks, ff_std, error share) of textured links, per wave
         self._executor = None   # Dask evaluator (distributed.py), made on the first wave
 
     def _add_clusters(self, verts: np.ndarray) -> None:
@@ -430,9 +429,8 @@ def solve_problem(scene: Scene, settings: Settings):
 
     # --- results --------------------------------------------------------------------------------
     h_leaf = system.gather(b_leaf) + prob.direct[leaves]
-    # Error estimate (relative, the tolerance's norm): the summed power error of the links
-    # (see link_power_errors) over A_total * mean(B - E); per leaf, the error density of the
-    # links on it and its ancestors, W/m^2.
+    # Error estimate (relative, the tolerance's norm): the elements' power errors
+    # (_element_errors) and the direct light's sampling error over A_total * mean(B - E).
     b_elem = system.pull @ b_leaf
     spread = _radiosity_spread(prob, system, b_elem)
     area_leaf = prob.elements.area[leaves]
@@ -696,40 +694,34 @@ def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: flo
     # the kernel oracle reads the texture's predicted error through ff_std (see link_power_errors)
     links.ff_std[idx] = ff_unocc * tl.predicted_error[ok] * np.sqrt(prob.settings.samples_per_link)
     links.vclass[idx] = TEXTURED
-    prob.textures.append((tl.select(ok), links.ff_std[idx].copy()))
-    n = len(e)
-    prob.texture_share = _merge_keys(prob.texture_share, links.recv[idx].astype(np.int64) * n + links.src[idx],
-                                     share[ok], n)
+    prob.textures.append((tl.select(ok), links.ff_std[idx].copy(), share[ok]))
     local = np.searchsorted(fresh, idx)
     error[local] = tex_error[ok]
     prob.timing["textures"] += time.perf_counter() - t
 
 
-def _merge_keys(table, keys: np.ndarray, values: np.ndarray, n: int):
-    """(sorted keys, values, n) of link keys recv * n + src; later entries win. Keys made with
-    a smaller element count n are re-keyed (element ids never change, only their count)."""
-    if table is not None:
-        old_keys, old_values, old_n = table
-        if old_n != n:
-            old_keys = (old_keys // old_n) * n + old_keys % old_n
-        keys, values = np.concatenate([old_keys, keys]), np.concatenate([old_values, values])
-    keys, first = np.unique(keys[::-1], return_index=True)
-    return keys, values[::-1][first], n
+def _stored_textures(prob: Problem, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the TEXTURED links among ``ids`` keep their texture: (their positions in ``ids``,
+    the index of each one's latest texture in the concatenation of ``prob.textures``)."""
+    links = prob.links
+    textured = np.flatnonzero(links.vclass[ids] == TEXTURED)
+    if not len(textured) or not prob.textures:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    n = len(prob.elements)
+    key = np.concatenate([t.recv.astype(np.int64) * n + t.src for t, _, _ in prob.textures])
+    order = np.argsort(key, kind="stable")
+    want = links.recv[ids[textured]].astype(np.int64) * n + links.src[ids[textured]]
+    pos = np.clip(np.searchsorted(key[order], want, side="right") - 1, 0, len(key) - 1)  # latest texture
+    found = key[order][pos] == want
+    return textured[found], order[pos[found]]
 
 
 def _texture_error_share(prob: Problem, ids: np.ndarray) -> np.ndarray:
     """(M,) error share of links ``ids``: a TEXTURED link's share from _texture_links, else 1."""
     share = np.ones(len(ids))
-    links = prob.links
-    textured = np.flatnonzero(links.vclass[ids] == TEXTURED)
-    if not len(textured) or prob.texture_share is None:
-        return share
-    keys, values, n_old = prob.texture_share
-    n = len(prob.elements)
-    want = links.recv[ids[textured]].astype(np.int64) * n_old + links.src[ids[textured]]
-    pos = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
-    found = keys[pos] == want
-    share[textured[found]] = values[pos[found]]
+    at, j = _stored_textures(prob, ids)
+    if len(at):
+        share[at] = np.concatenate([sh for _, _, sh in prob.textures])[j]
     return share
 
 
@@ -738,20 +730,12 @@ def _textures_of_links(prob: Problem):
     (K), ff_std (K,)), in the same order."""
     from .shadows import TextureLinks
 
-    links = prob.links
-    textured = np.flatnonzero(links.vclass == TEXTURED)
-    if not len(textured) or not prob.textures:
-        return np.zeros(0, np.int64), TextureLinks.empty(TEXTURE_RESOLUTION), np.zeros(0)
-    n = len(prob.elements)
-    tl = TextureLinks.concatenate([t for t, _ in prob.textures], TEXTURE_RESOLUTION)
-    std = np.concatenate([s for _, s in prob.textures])
-    key = tl.recv.astype(np.int64) * n + tl.src
-    order = np.argsort(key, kind="stable")
-    want = links.recv[textured].astype(np.int64) * n + links.src[textured]
-    pos = np.clip(np.searchsorted(key[order], want, side="right") - 1, 0, len(key) - 1)  # latest texture
-    found = key[order][pos] == want
-    j = order[pos[found]]
-    return textured[found], tl.select(j), std[j]
+    at, j = _stored_textures(prob, np.arange(len(prob.links)))
+    if not len(at):
+        return at, TextureLinks.empty(TEXTURE_RESOLUTION), np.zeros(0)
+    tl = TextureLinks.concatenate([t for t, _, _ in prob.textures], TEXTURE_RESOLUTION)
+    std = np.concatenate([s for _, s, _ in prob.textures])
+    return at, tl.select(j), std[j]
 
 
 def _restore_textures(prob: Problem) -> None:
