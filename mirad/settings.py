@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from .errors import SettingsError
 
 SOLVERS = ("gmres", "gauss-seidel", "jacobi")
+CORES = ("hierarchical", "legacy")
 SWITCHES = ("auto", "on", "off")
 ORACLES = ("kernel", "bf", "bound")
 
@@ -102,6 +103,11 @@ class Settings:
     scheduler : str or None, default None
         Address of a running Dask scheduler (e.g. "tcp://10.0.0.5:8786") to run the
         visibility waves on instead of a local cluster; takes precedence over ``workers``.
+    core : str, default "legacy"
+        "hierarchical": links at any level between volume clusters, face clusters and
+        triangles, exact unoccluded transfers, rays for visibility only (core.py);
+        "legacy": links on receiver leaves with Monte Carlo transfers (solver.py). Shadow
+        textures, Dask workers and the ``bf``/``bound`` oracles run on the legacy core.
     """
 
     tolerance: float = 0.03
@@ -125,6 +131,7 @@ class Settings:
     quiet: bool = False
     workers: int = 0
     scheduler: str | None = None
+    core: str = "legacy"
 
     def __post_init__(self) -> None:
         if not (0.0 < float(self.tolerance) < 1.0):
@@ -141,6 +148,8 @@ class Settings:
             raise SettingsError(f"clustering={self.clustering!r} is unknown; choose one of {', '.join(SWITCHES)}")
         if self.shaft_culling not in SWITCHES:
             raise SettingsError(f"shaft_culling={self.shaft_culling!r} is unknown; choose one of {', '.join(SWITCHES)}")
+        if self.core not in CORES:
+            raise SettingsError(f"core={self.core!r} is unknown; choose one of {', '.join(CORES)}")
         if self.oracle not in ORACLES:
             raise SettingsError(f"oracle={self.oracle!r} is unknown; choose one of {', '.join(ORACLES)}")
         if not (0.0 < self.solver_tolerance < 1.0):

@@ -329,10 +329,21 @@ class Problem:
         return LeafSystem(push.tocsr(), links, pull.tocsr(), rho, emission)
 
 
+def uses_hierarchical_core(settings: Settings) -> bool:
+    """Whether a solve runs on the hierarchical core (core.py): asked for, and no feature
+    that only the legacy core has (shadow textures, Dask waves, the bf/bound oracles)."""
+    return (settings.core == "hierarchical" and not settings.shadow_textures and not settings.workers
+            and settings.scheduler is None and settings.oracle == "kernel")
+
+
 def solve_problem(scene: Scene, settings: Settings):
     """Run hierarchical radiosity on a loaded scene; returns a Solution."""
     from .solution import Solution
 
+    if uses_hierarchical_core(settings):
+        from .core import solve_hierarchical
+
+        return solve_hierarchical(scene, settings, settings.max_links or _memory_max_links())
     t_start = time.perf_counter()
     prob = Problem(scene, settings)
     bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)

@@ -1,0 +1,508 @@
+"""The hierarchical core: link at any level, refine against the error budget, solve, repeat.
+
+Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
+
+    build       nodes.py: volume clusters over face clusters over the input triangles
+    link        every planar group's root <- the root volume cluster, evaluated
+    refine      refine.py: links over eps split an end (or trace more rays); new links are
+                evaluated in one Dr.Jit wave each (transfer.py, "transfer")
+    direct      point/spot/directional/environment light on each leaf (emitters.py)
+    solve       B = E + rho (push F pull) B on the leaves (linear.py), warm-started
+    estimate    summed link power errors over A_total * mean(B - E)
+
+Multigridding: after each solve the link errors are recomputed from the new radiosity;
+eps is set so that the links under it hold at most half the error budget
+(``refine.refinement_threshold``); refinement waves run until every link is under eps,
+then the system is solved again, until the estimate meets the tolerance.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from tqdm.auto import tqdm
+
+from .linear import LeafSystem, solve_system
+from .nodes import TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
+from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, link_values, power_errors,
+                     refinement_threshold)
+from .scene import Scene
+from .settings import Settings
+from .transfer import NodeBuffers, evaluate
+from .visibility import RAY_OFFSET
+
+#: Most points per leaf for the direct light of point/sky emitters.
+MAX_DIRECT_SAMPLES = 1024
+#: How a source's radiosity deviation is taken: "measured" over its leaves only, or also
+#: "estimated" from the spread of the light its links bring.
+SOURCE_DEVIATION = "measured"
+#: Bytes a link costs at the peak of a solve (its arrays, the sparse matrix, wave temporaries).
+LINK_PEAK_BYTES = 120
+
+
+@dataclass
+class State:
+    """Everything one hierarchical solve works on (declared here, filled by the stages)."""
+
+    scene: Scene
+    settings: Settings
+    channels: int
+    surface: Surface
+    nodes: Nodes
+    root: int
+    patch_rho: np.ndarray          # (P, C) reflectance of every patch
+    patch_emission: np.ndarray     # (P, C) emitted radiosity, W/m^2
+    total_area: float              # m^2, all patches
+    min_area: float                # m^2, smallest triangle a split may make
+    offset: float                  # m, ray ends lifted off surfaces
+    links: Links
+    buffers: NodeBuffers | None = None
+    direct: np.ndarray | None = None          # (N, C) direct irradiance of leaves, W/m^2
+    direct_error: np.ndarray | None = None    # (N, C) its standard error
+    direct_samples: np.ndarray | None = None  # (N,) points it came from
+    rays: int = 0
+    waves: int = 0
+
+    def __post_init__(self) -> None:
+        self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
+                       "solve": 0.0, "estimate": 0.0}
+        n = len(self.nodes)
+        self.direct = np.zeros((n, self.channels))
+        self.direct_error = np.zeros((n, self.channels))
+        self.direct_samples = np.zeros(n, np.int64)
+
+
+def _surface(scene: Scene, channels: int, seed: int) -> Surface:
+    tris = scene.patch_tri
+    side = scene.patch_side
+    verts = scene.tri_vertices[tris].copy()
+    verts[side == 1] = verts[side == 1][:, ::-1]
+    c = np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0])
+    normal = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-300)
+    curve = (scene.curve_center[tris], scene.curve_axis[tris], scene.curve_radius[tris])
+    return Surface(verts=verts, normal=normal, group_key=scene.tri_shape[tris].astype(np.int64) * 2 + side,
+                   rho_max=scene.patch_rho[:, :channels].max(axis=1),
+                   emits=scene.patch_emission[:, :channels].max(axis=1) > 0, curve=curve,
+                   diagonal=scene.diagonal, seed=int(seed))
+
+
+# ------------------------------------------------------------------------------------------
+# Stages
+# ------------------------------------------------------------------------------------------
+
+def build(scene: Scene, settings: Settings) -> State:
+    """Stage build: the node hierarchy and the solve's state."""
+    t = time.perf_counter()
+    channels = 1 if scene.grey else scene.channels
+    surf = _surface(scene, channels, settings.seed)
+    nodes, _, root = build_nodes(surf)
+    total = float(nodes.area[: len(surf.verts)].sum())
+    tol = settings.tolerance
+    state = State(scene=scene, settings=settings, channels=channels, surface=surf, nodes=nodes, root=root,
+                  patch_rho=scene.patch_rho[:, :channels], patch_emission=scene.patch_emission[:, :channels],
+                  total_area=total,
+                  min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
+                  offset=RAY_OFFSET * scene.diagonal, links=Links())
+    state.timing["build"] += time.perf_counter() - t
+    return state
+
+
+def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
+    """One transfer wave per ray count; returns the evaluated links (same order)."""
+    t = time.perf_counter()
+    if state.buffers is None or state.buffers.size != len(state.nodes):
+        state.buffers = NodeBuffers.upload(state.nodes)
+    out = Links(recv.astype(np.int32), src.astype(np.int32), *(np.zeros(len(recv), np.float32) for _ in range(5)),
+                rays.astype(np.int16))
+    for r in np.unique(rays):
+        idx = np.flatnonzero(rays == r)
+        pt = evaluate(state.scene.mi_scene, state.buffers, recv[idx], src[idx], rays_per_point=int(r),
+                      seed=state.settings.seed + 0x10000 * int(r), offset=state.offset)
+        state.rays += pt.rays
+        part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
+        for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread"):
+            getattr(out, name)[idx] = getattr(part, name)
+    state.waves += 1
+    state.timing["transfer"] += time.perf_counter() - t
+    return out
+
+
+def link(state: State) -> None:
+    """Stage link: every planar group's root receives from the root volume cluster."""
+    t = time.perf_counter()
+    nodes = state.nodes
+    if nodes.kind[state.root] == VOLUME:
+        vol = np.flatnonzero(nodes.kind == VOLUME)
+        # the volume tree's children that are not volumes are the planar groups' roots
+        c = nodes.children[vol, :2].ravel()
+        groups = c[(c >= 0) & (nodes.kind[np.maximum(c, 0)] != VOLUME)]
+        recv = groups
+        src = np.full(len(groups), state.root)
+    else:
+        recv = src = np.zeros(0, np.int64)
+    state.timing["link"] += time.perf_counter() - t
+    state.links = evaluate_links(state, recv, src, np.ones(len(recv), np.int16))
+
+
+def _keep(state: State, links: Links) -> np.ndarray:
+    """(M,) bool: links that can carry light: neither end wholly behind the other's plane
+    (volume-cluster sources are kept until opened). A link whose points all missed its
+    source is kept when part of it may see the source (see refine.link_values)."""
+    nodes = state.nodes
+    r, s = links.recv, links.src
+    planar_r = nodes.kind[r] != VOLUME
+    planar_s = nodes.kind[s] != VOLUME
+    tol = 0.1 * state.offset
+    # signed heights of the other end's bounding sphere above each end's plane
+    h_rs = np.einsum("mc,mc->m", nodes.normal[r], nodes.center[s] - nodes.poly[r, 0]) + nodes.radius[s]
+    h_sr = np.einsum("mc,mc->m", nodes.normal[s], nodes.center[r] - nodes.poly[s, 0]) + nodes.radius[r]
+    possible = (~planar_r | (h_rs > tol)) & (~planar_s | (h_sr > tol))
+    return (links.ff_unocc > 0) | (possible & ((links.err_ff > 0) | ~planar_s))
+
+
+def refine(state: State, source: SourceState, eps: float, max_links: int) -> tuple[bool, bool]:
+    """Stage refine: waves until every link is under eps (W); returns (changed, capped)."""
+    t0 = time.perf_counter()
+    nodes = state.nodes
+    changed = capped = False
+    checked = 0
+    while True:
+        links = state.links
+        fresh = np.arange(checked, len(links))
+        part = links.select(fresh)
+        source = source.grow(nodes)
+        rec, src_term = power_errors(nodes, part, source)
+        dec = choose(nodes, part, rec, src_term, eps, state.min_area)
+        if not dec.any:
+            break
+        growth = 2 * int(dec.split_src.sum() + dec.split_recv.sum()) + int(dec.more_rays.sum())
+        if len(links) + growth > max_links:
+            capped = True
+            break
+        changed = True
+        # --- split what must split: triangle leaves get children first ------------------
+        need = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
+        need = need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)]
+        n_before = len(nodes)
+        split_triangles(nodes, need, state.surface)
+        if len(nodes) > n_before:
+            _grow_direct(state, n_before)
+        # --- children links ----------------------------------------------------------------
+        s_idx = np.flatnonzero(dec.split_src)
+        kids = nodes.children[part.src[s_idx]]
+        own, slot = np.nonzero(kids >= 0)
+        r1, s1 = part.recv[s_idx][own], kids[own, slot]
+        q_idx = np.flatnonzero(dec.split_recv)
+        kids = nodes.children[part.recv[q_idx]]
+        own, slot = np.nonzero(kids >= 0)
+        r2, s2 = kids[own, slot], part.src[q_idx][own]
+        m_idx = np.flatnonzero(dec.more_rays)
+        r3, s3 = part.recv[m_idx], part.src[m_idx]
+        rays = np.concatenate([np.ones(len(r1) + len(r2), np.int16),
+                               np.minimum(4 * part.rays[m_idx], MAX_RAYS_PER_POINT).astype(np.int16)])
+        # children of a link keep its ray count only where it grew for noise
+        rays[: len(r1)] = part.rays[s_idx][np.nonzero(nodes.children[part.src[s_idx]] >= 0)[0]]
+        rays[len(r1):len(r1) + len(r2)] = part.rays[q_idx][np.nonzero(nodes.children[part.recv[q_idx]] >= 0)[0]]
+        t1 = time.perf_counter()
+        new = evaluate_links(state, np.concatenate([r1, r2, r3]), np.concatenate([s1, s2, s3]), rays)
+        t0 += time.perf_counter() - t1          # the wave is timed as "transfer"
+        new = new.select(_keep(state, new))
+        keep = np.ones(len(links), bool)
+        keep[fresh[dec.split_src | dec.split_recv | dec.more_rays]] = False
+        kept = links.select(keep)
+        checked = len(kept)
+        state.links = kept.extend(new)
+    state.timing["refine"] += time.perf_counter() - t0
+    return changed, capped
+
+
+def _grow_direct(state: State, n_before: int) -> None:
+    grown = len(state.nodes) - n_before
+    c = state.channels
+    state.direct = np.concatenate([state.direct, np.zeros((grown, c))])
+    state.direct_error = np.concatenate([state.direct_error, np.zeros((grown, c))])
+    state.direct_samples = np.concatenate([state.direct_samples, np.zeros(grown, np.int64)])
+
+
+def direct(state: State, ids: np.ndarray, samples: int) -> None:
+    """Stage direct: irradiance (W/m^2) of point/spot/directional/environment emitters on
+    triangle leaves ids from ``samples`` points each, with its standard error."""
+    scene = state.scene
+    if not scene.light_emitters or not len(ids):
+        return
+    from .emitters import direct_irradiance
+
+    t = time.perf_counter()
+    nodes = state.nodes
+    tri = scene.patch_tri[nodes.patch[ids]]
+    curve = (scene.curve_center[tri], scene.curve_axis[tri], scene.curve_radius[tri])
+    h, err, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
+                                     seed=state.settings.seed + samples, keys=ids, with_error=True)
+    state.direct[ids] = h[:, : state.channels]
+    state.direct_error[ids] = err[:, : state.channels]
+    state.direct_samples[ids] = samples
+    state.rays += rays
+    state.timing["direct"] += time.perf_counter() - t
+
+
+def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
+    """(L,) expected absolute error of each leaf's direct light as power, W."""
+    rho = state.patch_rho[state.nodes.patch[leaves]]
+    return EXPECTED_ABS * state.nodes.area[leaves] * (rho * state.direct_error[leaves]).max(axis=1)
+
+
+def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
+    """Four times the points where a leaf's direct-light error exceeds eps (W)."""
+    if not state.scene.light_emitters:
+        return False
+    noisy = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] < MAX_DIRECT_SAMPLES)]
+    for samples in np.unique(state.direct_samples[noisy]):
+        ids = noisy[state.direct_samples[noisy] == samples]
+        direct(state, ids, int(min(4 * samples, MAX_DIRECT_SAMPLES)))
+    return len(noisy) > 0
+
+
+@dataclass
+class Solved:
+    """A solution of the current links: leaves (L,), the system, b_leaf (L, C), node values."""
+
+    leaves: np.ndarray
+    system: LeafSystem
+    b_leaf: np.ndarray
+    b_node: np.ndarray
+    iterations: int
+    residual: float
+
+
+def ancestor_matrix(nodes: Nodes, leaves: np.ndarray) -> sp.csr_matrix:
+    """(L, N) 0/1: row l has ones at leaf l and all its ancestors (push down)."""
+    rows, cols = [], []
+    node = leaves.astype(np.int64)
+    idx = np.arange(len(leaves))
+    while len(node):
+        rows.append(idx)
+        cols.append(node)
+        node = nodes.parent[node].astype(np.int64)
+        keep = node >= 0
+        node, idx = node[keep], idx[keep]
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    return sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(leaves), len(nodes)))
+
+
+def solve(state: State, previous: Solved | None) -> Solved:
+    """Stage solve: radiosity of the leaves for the current links, warm-started."""
+    t = time.perf_counter()
+    nodes = state.nodes
+    leaves = nodes.leaves
+    push = ancestor_matrix(nodes, leaves)
+    area = nodes.area
+    pull = (sp.diags(1.0 / np.maximum(area, 1e-300)) @ push.T.tocsr() @ sp.diags(area[leaves])).tocsr()
+    rho = state.patch_rho[nodes.patch[leaves]]
+    emission = state.patch_emission[nodes.patch[leaves]] + rho * state.direct[leaves]
+    system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, emission)
+    if previous is None:
+        x0 = emission.copy()
+    else:
+        # leaves made since the last solve start from their ancestors' radiosity
+        b_node = np.zeros((len(nodes), state.channels))
+        n_prev = len(previous.b_node)
+        b_node[:n_prev] = previous.b_node
+        grown = np.arange(n_prev, len(nodes))
+        if len(grown):
+            # a new node's parent is older than it; one step per subdivision level
+            for _ in range(int(nodes.depth[grown].max()) + 1):
+                b_node[grown] = b_node[nodes.parent[grown]]
+        x0 = b_node[leaves]
+    b, iterations, residual = solve_system(system, x0, method=state.settings.solver,
+                                           tol=state.settings.solver_tolerance,
+                                           max_iterations=state.settings.max_iterations)
+    b = np.maximum(b, 0.0)
+    state.timing["solve"] += time.perf_counter() - t
+    return Solved(leaves, system, b, pull @ b, iterations, residual)
+
+
+def source_state(state: State, solved: Solved) -> SourceState:
+    """Per-node radiosity figures the errors need (see refine.SourceState).
+
+    A node's deviation is measured over the leaves below it, and estimated from the
+    spread of the light its links bring (rho B_s times the links' spread over their
+    receiver points, pushed down and pulled up): a leaf's own variation is only seen so.
+    """
+    b_node = solved.b_node
+    b_leaf = solved.b_leaf
+    system = solved.system
+    pull = system.pull.tocoo()
+    deviation = np.abs(b_leaf[pull.col] - b_node[pull.row]).max(axis=1)
+    measured = np.bincount(pull.row, weights=pull.data * deviation, minlength=len(state.nodes))
+    links = state.links
+    n = len(state.nodes)
+    variation = np.bincount(links.recv, weights=links.spread * b_node.max(axis=1)[links.src], minlength=n)
+    leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
+    estimated = system.pull @ (leaf_rho * (system.push @ variation))
+    dev = measured if SOURCE_DEVIATION == "measured" else np.maximum(measured, estimated)
+    below = np.zeros(len(state.nodes))
+    np.maximum.at(below, pull.row, b_leaf[pull.col].max(axis=1))
+    return SourceState(b_node.max(axis=1), below, dev)
+
+
+def reflected_mean(state: State, solved: Solved) -> float:
+    """Area-weighted mean reflected radiosity B - E over the leaves (mean over channels)."""
+    leaves = solved.leaves
+    reflected = np.maximum(solved.b_leaf - state.patch_emission[state.nodes.patch[leaves]], 0.0)
+    area = state.nodes.area[leaves]
+    mean = float((area[:, None] * reflected).sum() / max(area.sum() * reflected.shape[1], 1e-300))
+    return mean if mean > 0 else 1e-300
+
+
+@dataclass
+class Estimate:
+    """Link errors (W) and the relative estimate."""
+
+    receiver: np.ndarray
+    source: np.ndarray
+    direct: np.ndarray     # (L,) per leaf
+    relative: float
+    reflected_mean: float
+
+    @property
+    def link_errors(self) -> np.ndarray:
+        return self.receiver + self.source
+
+
+def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
+    """Stage estimate: summed link and direct-light power errors over A_total * mean(B - E)."""
+    t = time.perf_counter()
+    receiver, src = power_errors(state.nodes, state.links, source)
+    d = direct_power_errors(state, solved.leaves) if state.scene.light_emitters else np.zeros(len(solved.leaves))
+    mean = reflected_mean(state, solved)
+    total = float(np.sum(receiver + src)) + float(d.sum())
+    state.timing["estimate"] += time.perf_counter() - t
+    return Estimate(receiver, src, d, total / max(state.total_area * mean, 1e-300), mean)
+
+
+# ------------------------------------------------------------------------------------------
+# The driver
+# ------------------------------------------------------------------------------------------
+
+def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
+    """Hierarchical radiosity on a loaded scene; returns a Solution."""
+    from .solution import Solution
+
+    t_start = time.perf_counter()
+    state = build(scene, settings)
+    link(state)
+    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)
+    nodes = state.nodes
+    # open the volume clusters that hold emitters before the first solve (their error is inf)
+    empty = SourceState(np.zeros(len(nodes)), np.zeros(len(nodes)), np.zeros(len(nodes)))
+    _, capped = refine(state, empty, np.finfo(float).max, max_links)
+    direct(state, state.nodes.leaves, min(settings.samples_per_link, MAX_DIRECT_SAMPLES))
+    solved = solve(state, None)
+    iterations = solved.iterations
+    bar.update(1)
+    passes = 0
+    history = []
+    try:
+        while True:
+            src_state = source_state(state, solved)
+            est = estimate(state, solved, src_state)
+            history.append(est.relative)
+            bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
+            if est.relative <= settings.tolerance or capped or passes >= settings.max_refine_passes:
+                break
+            budget = settings.tolerance * state.total_area * est.reflected_mean
+            eps = refinement_threshold(np.concatenate([est.link_errors, est.direct]), budget)
+            leaves = state.nodes.leaves
+            resampled = resample_direct(state, leaves, eps)
+            changed, capped = refine(state, src_state, eps, max_links)
+            n_leaves = len(state.nodes.leaves)
+            if n_leaves != len(leaves):
+                new = state.nodes.leaves
+                direct(state, new[state.direct_samples[new] == 0], min(settings.samples_per_link, MAX_DIRECT_SAMPLES))
+            passes += 1
+            bar.update(1)
+            if not (changed or resampled):
+                break
+            solved = solve(state, solved)
+            iterations += solved.iterations
+    finally:
+        bar.close()
+    if capped:
+        warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
+                      f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
+                      "tolerance or max_links", stacklevel=3)
+    elif est.relative > settings.tolerance:
+        warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
+                      f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
+    return _solution(state, solved, est, src_state, passes, iterations, capped, t_start, history)
+
+
+def _solution(state, solved, est, src_state, passes, iterations, capped, t_start, history):
+    from .solution import Solution
+
+    scene, settings, nodes = state.scene, state.settings, state.nodes
+    leaves = solved.leaves
+    system = solved.system
+    b_leaf = solved.b_leaf
+    h_leaf = system.gather(b_leaf) + state.direct[leaves]
+    per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
+    err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + est.direct / nodes.area[leaves]
+    area_leaf = nodes.area[leaves]
+    mean_b = float((area_leaf[:, None] * b_leaf).sum() / max(area_leaf.sum() * b_leaf.shape[1], 1e-300)) or 1e-300
+    state.timing["total"] = time.perf_counter() - t_start
+    kinds = nodes.kind
+    stats = {
+        "core": "hierarchical",
+        "elements": int(len(nodes)),
+        "leaves": int(len(leaves)),
+        "links": int(len(state.links)),
+        "links_per_leaf": float(len(state.links) / max(len(leaves), 1)),
+        "rays": int(state.rays),
+        "waves": int(state.waves),
+        "seconds": {k: round(v, 4) for k, v in state.timing.items()},
+        "estimated_error": float(est.relative),
+        "estimated_error_of_mean": float(est.relative * est.reflected_mean / mean_b),
+        "estimate_history": [float(h) for h in history],
+        "error_bound": float(est.relative / max(1.0 - float(state.patch_rho.max()), 1e-3)),
+        "oracle": settings.oracle,
+        "texture_links": 0,
+        "visibility_classes": {"partial": int(np.count_nonzero(state.links.vis_std > 0)),
+                               "links": int(len(state.links))},
+        "solver": settings.solver,
+        "solver_iterations": int(iterations),
+        "solver_residual": float(solved.residual),
+        "refine_passes": int(passes),
+        "clusters": int(np.count_nonzero(kinds != TRIANGLE)),
+        "face_clusters": int(np.count_nonzero(kinds == 1)),
+        "volume_clusters": int(np.count_nonzero(kinds == VOLUME)),
+        "min_element_area": state.min_area,
+        "capped": bool(capped),
+        "features": scene.features,
+        "variant": scene.variant,
+        "memory_bytes": {"elements": int(nodes.nbytes), "links": int(state.links.nbytes)},
+        "settings": {k: getattr(settings, k) for k in ("tolerance", "samples_per_link", "seed", "solver")},
+        "warnings": list(scene.warnings),
+        "detail_leaves": 0,
+    }
+    err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
+    view = _LeafView(nodes, state.surface.normal)
+    return Solution.from_solve(scene, view, leaves, b_leaf, h_leaf, err_leaf, stats, detail=None)
+
+
+class _LeafView:
+    """The two arrays Solution.from_solve reads: ``elements.verts``/``elements.patch`` and
+    ``patch_normal``."""
+
+    def __init__(self, nodes: Nodes, patch_normal: np.ndarray):
+        self.elements = _Elements(nodes.poly[:, :3], np.maximum(nodes.patch, 0))
+        self.patch_normal = patch_normal
+
+
+@dataclass
+class _Elements:
+    verts: np.ndarray
+    patch: np.ndarray

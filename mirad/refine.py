@@ -1,0 +1,235 @@
+"""The Refine stage of the hierarchical core: link arrays, their errors, and what to split.
+
+Every link r <- s carries its transfer F (form factor with visibility) and two errors in
+form-factor units, both from the receiver points of its wave (transfer.py):
+
+* ``err_ff``: how far the one value F is from what the patches below r should get.
+  On a face cluster (it pushes F to several input triangles) the mean absolute deviation
+  of the point transfers G_i v_i from F; on a triangle (whose mean is what counts) the
+  quadrature error of the unoccluded part: the difference between the degree-5 rule and
+  an embedded degree-2 rule on its outer six points, about C (h/d)^3 for a receiver of
+  radius h at distance d, scaled by (h/d)^3 to the degree-5 rule's C (h/d)^6 (capped at 1). A face-cluster source's rectangle stands
+  in for its triangles scaled by its fill ratio: F (1 - fill) more.
+* ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
+  over the link's n rays (zero when all rays agree).
+
+As power (W), over the receiver's area A_r with the receiver's largest reflectance and
+the source's brightest channel (``power_errors``):
+
+    receiver term  A_r rho_r B_s (err_ff + sqrt(2/pi) vis_std)
+    source term    A_r rho_r F dev_s min(1, 2 R_s / d)
+
+where dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
+source's mean; the kernel's relative change across the source, at most its size over its
+distance, turns that into a transfer error). A volume-cluster source has no exact
+transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
+the brightest leaf below, Smits-Arvo-Greenberg), so it opens wherever it matters; a
+cluster holding an emitter always opens.
+
+Refinement (``choose``) splits a link whose error exceeds eps: the source when it is a
+volume cluster or its term dominates; otherwise the larger end that can split; a link on a
+triangle whose error is mostly visibility noise first gets four times the rays (up to
+``MAX_RAYS_PER_POINT``), which costs no new nodes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .cluster import sphere_form_factor_bound
+from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
+from .transfer import PointTransfers
+
+#: Most shadow rays per receiver point (a link traces at most K times this many).
+MAX_RAYS_PER_POINT = 16
+#: A degree-2 rule on the six outer points of Dunavant's 7-point rule (nodes.DUNAVANT7_BARY):
+#: weights that integrate 1 and the symmetric second moment (1/6) exactly.
+def _embedded_weights() -> np.ndarray:
+    m1, m2 = ((DUNAVANT7_BARY[k] ** 2).sum() for k in (1, 4))   # a^2 + 2 b^2 of each orbit
+    w2 = (1 / 6 - m1 / 3) / (m2 - m1)
+    return np.array([0.0] + [1 / 3 - w2] * 3 + [w2] * 3)
+
+
+EMBEDDED_WEIGHTS = _embedded_weights()
+#: Expected |N(0, s)| / s: turns a standard error into an expected absolute error.
+EXPECTED_ABS = float(np.sqrt(2.0 / np.pi))
+
+
+@dataclass
+class Links:
+    """Links receiver <- source as parallel arrays (M rows).
+
+    recv, src : (M,) int32     node ids
+    ff : (M,) float32          transfer (form factor with visibility), receiver-area mean
+    ff_unocc : (M,) float32    unoccluded form factor
+    err_ff : (M,) float32      representation / quadrature error of ff (see module docstring)
+    vis_std : (M,) float32     standard error of ff from visibility sampling
+    spread : (M,) float32      mean absolute deviation of the point transfers over the receiver
+    rays : (M,) int16          shadow rays per receiver point used
+    """
+
+    recv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    src: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    ff: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    ff_unocc: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    err_ff: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    vis_std: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    spread: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    rays: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int16))
+
+    _FIELDS = ("recv", "src", "ff", "ff_unocc", "err_ff", "vis_std", "spread", "rays")
+
+    def __len__(self) -> int:
+        return len(self.recv)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, f).nbytes for f in self._FIELDS)
+
+    def select(self, mask) -> "Links":
+        return Links(**{f: getattr(self, f)[mask] for f in self._FIELDS})
+
+    def extend(self, other: "Links") -> "Links":
+        return Links(**{f: np.concatenate([getattr(self, f), getattr(other, f)]) for f in self._FIELDS})
+
+    def matrix(self, n: int) -> sp.csr_matrix:
+        """(N, N) sparse transfer matrix: H_recv = F @ B_src (duplicates summed)."""
+        return sp.csr_matrix((self.ff.astype(np.float64), (self.recv, self.src)), shape=(n, n))
+
+
+def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransfers, rays: np.ndarray) -> Links:
+    """Links from the per-point results of a wave (see module docstring)."""
+    w = nodes.recv_w[recv].astype(np.float64)
+    g = pt.g.astype(np.float64)
+    gv = pt.gv.astype(np.float64)
+    ff = (w * gv).sum(axis=1)
+    ff_unocc = (w * g).sum(axis=1)
+    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    face_recv = nodes.kind[recv] == FACE
+    # triangles: the 7-point degree-5 rule against the degree-2 rule on its six outer points
+    # (EMBEDDED_WEIGHTS). Their difference is about the degree-2 rule's error C (h/d)^3 for a
+    # receiver of radius h at distance d from the source; the degree-5 rule's is about
+    # C (h/d)^6, hence the (h/d)^3 factor (capped at 1)
+    d = np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1)
+    h = nodes.radius[recv]
+    order_gain = np.minimum(1.0, (h / np.maximum(d, 1e-12 * np.maximum(h, 1e-300))) ** 3)
+    low = (g * EMBEDDED_WEIGHTS[None]).sum(axis=1)
+    quad = np.abs(ff_unocc - low) * order_gain * vis
+    spread = (w * np.abs(pt.gv_point.astype(np.float64) - ff[:, None])).sum(axis=1)
+    err = np.where(face_recv, spread, quad)
+    # an end that straddles the other's plane: the receiver's points may all miss (or all
+    # see) a source that part of it sees; its bounding-sphere form factor bounds the error
+    straddle = (_straddles(nodes, recv, src) | _straddles(nodes, src, recv)) & (nodes.kind[src] != VOLUME)
+    if straddle.any():
+        k = np.flatnonzero(straddle)
+        bound = sphere_form_factor_bound(nodes.center[recv[k]], nodes.radius[recv[k]], nodes.center[src[k]],
+                                         nodes.radius[src[k]])
+        err[k] = np.maximum(err[k], np.maximum(bound - ff[k], 0.0))
+    src_face = nodes.kind[src] == FACE
+    err = err + np.where(src_face, ff * (1.0 - nodes.fill[src]), 0.0)
+    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+    n_rays = RECEIVER_POINTS * rays.astype(np.float64)
+    vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(vis * (1 - vis), 0, 0.25) / n_rays), 0.0)
+    return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
+                 err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
+                 rays.astype(np.int16))
+
+
+def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(M,) bool: face cluster a has patches on both sides of (planar) b's plane."""
+    h = np.einsum("mc,mc->m", nodes.normal[b], nodes.center[a] - nodes.poly[b, 0])
+    return (nodes.kind[a] == FACE) & (np.abs(h) < nodes.radius[a]) & (nodes.kind[b] != VOLUME) & \
+        (np.abs(np.einsum("mc,mc->m", nodes.normal[a], nodes.normal[b])) < 1 - 1e-6)
+
+
+@dataclass
+class SourceState:
+    """What the errors need of the current solution, per node (N,).
+
+    b_max : brightest channel of the node's mean radiosity, W/m^2
+    b_max_below : brightest leaf below (volume-cluster bounds), W/m^2
+    dev : area-weighted mean |B_leaf - B_node| over the node's leaves (max channel), W/m^2
+    """
+
+    b_max: np.ndarray
+    b_max_below: np.ndarray
+    dev: np.ndarray
+
+    def grow(self, nodes: Nodes) -> "SourceState":
+        """Children made since: their parent's values (deviation halved) until the next solve."""
+        n_old = len(self.b_max)
+        if len(nodes) == n_old:
+            return self
+        par = nodes.parent[n_old:]
+        return SourceState(np.concatenate([self.b_max, self.b_max[par]]),
+                           np.concatenate([self.b_max_below, self.b_max_below[par]]),
+                           np.concatenate([self.dev, 0.5 * self.dev[par]]))
+
+
+def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.ndarray, np.ndarray]:
+    """(receiver term, source term) of every link, W (see module docstring)."""
+    r, s = links.recv, links.src
+    scale = nodes.area[r] * nodes.rho_max[r]
+    receiver = scale * state.b_max[s] * (links.err_ff + EXPECTED_ABS * links.vis_std)
+    dist = np.linalg.norm(nodes.center[r] - nodes.center[s], axis=1)
+    kernel_change = np.minimum(1.0, 2.0 * nodes.radius[s] / np.maximum(dist, 1e-300))
+    source = scale * links.ff * state.dev[s] * kernel_change
+    vol = np.flatnonzero(nodes.kind[s] == VOLUME)
+    if len(vol):
+        rv, sv = r[vol], s[vol]
+        bound = sphere_form_factor_bound(nodes.center[rv], nodes.radius[rv], nodes.center[sv], nodes.radius[sv])
+        receiver[vol] = scale[vol] * state.b_max_below[sv] * bound
+        source[vol] = 0.0
+        lit = vol[nodes.emits[sv]]
+        receiver[lit] = np.inf
+    return receiver, source
+
+
+@dataclass
+class Decision:
+    """What a refinement wave does with the links it looked at (masks over them)."""
+
+    split_src: np.ndarray
+    split_recv: np.ndarray
+    more_rays: np.ndarray
+
+    @property
+    def any(self) -> bool:
+        return bool(self.split_src.any() or self.split_recv.any() or self.more_rays.any())
+
+
+def choose(nodes: Nodes, links: Links, receiver: np.ndarray, source: np.ndarray, eps: float,
+           min_area: float) -> Decision:
+    """Which links over eps split their source, their receiver, or trace more rays."""
+    r, s = links.recv, links.src
+    over = (receiver + source) > eps
+    can = nodes.splittable(min_area)
+    can_r, can_s = can[r] & (nodes.kind[r] != VOLUME), can[s]
+    vol_src = nodes.kind[s] == VOLUME
+    noisy = (nodes.kind[r] == TRIANGLE) & (EXPECTED_ABS * links.vis_std > links.err_ff) & \
+        (links.rays < MAX_RAYS_PER_POINT)
+    more_rays = over & ~vol_src & noisy
+    rest = over & ~more_rays
+    src_first = vol_src | ((source > receiver) & can_s)
+    bigger_src = nodes.area[s] >= nodes.area[r]
+    split_src = rest & can_s & (src_first | bigger_src | ~can_r)
+    split_recv = rest & ~split_src & can_r
+    # a link stuck on noise with neither end splittable still gets its rays
+    stuck = over & ~(split_src | split_recv | more_rays) & (links.rays < MAX_RAYS_PER_POINT) & ~vol_src
+    return Decision(split_src, split_recv, more_rays | stuck)
+
+
+def refinement_threshold(errors: np.ndarray, budget: float) -> float:
+    """The eps at which the links below it hold at most half the budget (W): refining the
+    links above it brings the summed error towards the budget in one pass."""
+    if not len(errors):
+        return np.inf
+    e = np.sort(errors[np.isfinite(errors)])
+    below = np.cumsum(e)
+    k = int(np.searchsorted(below, 0.5 * budget, side="right"))
+    if k >= len(e):
+        return float(e[-1]) if len(e) else np.inf
+    return float(e[k - 1]) if k > 0 else float(e[0]) * 0.999

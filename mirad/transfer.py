@@ -1,0 +1,189 @@
+"""Link transfers of the hierarchical core as one fused Dr.Jit wave per call.
+
+A link r <- s is evaluated at the receiver's fixed quadrature points x_i (nodes.py):
+
+* planar sources (triangles, face clusters): the exact unoccluded point-to-polygon form
+  factor G_i = F(dA_{x_i} -> polygon of s) * fill_s (Lambert's formula, clipped to x_i's
+  tangent half-space; exact for triangles and rectangular clusters);
+* volume clusters: a Monte Carlo estimate over the rays' target points, each with the
+  bounded point-to-point kernel cos_x cos_y A_s / (pi r^2 + A_s / S).
+
+Visibility is only sampled: R shadow rays from each x_i to the source's stratified points
+(``mi.Scene.ray_test``); v_i is the kernel-weighted fraction of them that arrive. A link's
+transfer is F = sum_i w_i G_i v_i. The wave returns per-point arrays (M, K) to numpy,
+where refine.py turns them into errors.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _runtime  # noqa: F401
+from .nodes import RECEIVER_POINTS, SOURCE_POINTS, VOLUME, Nodes
+from .visibility import MAX_LANES, RAY_OFFSET, hash_u32
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+_TINY = 1e-30
+
+
+def _f(a) -> "mi.Float":
+    return mi.Float(np.ascontiguousarray(np.ravel(a), dtype=np.float32))
+
+
+def _vec(a) -> "mi.Vector3f":
+    a = np.asarray(a, np.float32).reshape(-1, 3)
+    return mi.Vector3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
+
+
+@dataclass
+class NodeBuffers:
+    """Node arrays resident in Dr.Jit (float32), uploaded once per change of the node count."""
+
+    size: int
+    poly: tuple          # four mi.Vector3f (N,)
+    normal: object       # mi.Vector3f (N,)
+    fill: object         # mi.Float (N,)
+    area: object         # mi.Float (N,)
+    kind: object         # mi.UInt32 (N,)
+    recv_pts: object     # mi.Vector3f (N * K,)
+    recv_nrm: object
+    src_pts: object      # mi.Vector3f (N * S,)
+    src_nrm: object
+
+    @classmethod
+    def upload(cls, nodes: Nodes) -> "NodeBuffers":
+        return cls(len(nodes), tuple(_vec(nodes.poly[:, k]) for k in range(4)), _vec(nodes.normal), _f(nodes.fill),
+                   _f(nodes.area), mi.UInt32(nodes.kind.astype(np.uint32)), _vec(nodes.recv_pts),
+                   _vec(nodes.recv_nrm), _vec(nodes.src_pts), _vec(nodes.src_nrm))
+
+
+@dataclass
+class PointTransfers:
+    """Per receiver point results of a wave (numpy): arrays (M, K)."""
+
+    g: np.ndarray        # unoccluded form factor at the point
+    gv: np.ndarray       # times the link's visibility fraction
+    gv_point: np.ndarray  # times the point's own visibility fraction (for the spread)
+    rays: int            # shadow rays traced
+
+
+def _edge_term(a, b, n):
+    c = dr.cross(a, b)
+    cn = dr.norm(c)
+    return dr.atan2(cn, dr.dot(a, b)) * dr.dot(n, c) / dr.maximum(cn, _TINY)
+
+
+def point_to_polygon_dr(x, n, corners):
+    """Unoccluded form factor dA(x, n) -> convex polygon ``corners`` (list of mi.Vector3f,
+    a repeated corner allowed), clipped to n.(y - x) >= 0; mi.Float in [0, 1]."""
+    r = [c - x for c in corners]
+    d = [dr.dot(n, ri) for ri in r]
+    inside = [di >= 0 for di in d]
+    width = dr.width(d[0])
+    total = dr.zeros(mi.Float, width)
+    exit_pt = dr.zeros(mi.Vector3f, width)
+    entry_pt = dr.zeros(mi.Vector3f, width)
+    crossing = dr.zeros(mi.Bool, width)
+    k = len(r)
+    for i in range(k):
+        j = (i + 1) % k
+        denom = d[i] - d[j]
+        t = dr.select(dr.abs(denom) > 0, d[i] / dr.select(denom == 0, 1.0, denom), 0.0)
+        p = dr.fma(r[j] - r[i], t, r[i])
+        start = dr.select(inside[i], r[i], p)
+        end = dr.select(inside[j], r[j], p)
+        total += dr.select(inside[i] | inside[j], _edge_term(start, end, n), 0.0)
+        leaving = inside[i] & ~inside[j]
+        exit_pt = dr.select(leaving, p, exit_pt)
+        entry_pt = dr.select(~inside[i] & inside[j], p, entry_pt)
+        crossing |= leaving
+    total += dr.select(crossing, _edge_term(exit_pt, entry_pt, n), 0.0)
+    return dr.minimum(dr.abs(total) * (0.5 / dr.pi), 1.0)
+
+
+def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
+             seed: int, offset: float) -> PointTransfers:
+    """Transfers of links recv <- src (M,) at the receivers' K points, R = rays_per_point
+    shadow rays each; ``offset`` lifts ray ends off surfaces (metres)."""
+    m = len(recv)
+    k = RECEIVER_POINTS
+    g = np.zeros((m, k), np.float32)
+    gv = np.zeros((m, k), np.float32)
+    gp = np.zeros((m, k), np.float32)
+    rays = 0
+    per_launch = max(1, MAX_LANES // (k * rays_per_point))
+    for a in range(0, m, per_launch):
+        b = min(m, a + per_launch)
+        g[a:b], gv[a:b], gp[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset)
+        rays += ra
+    return PointTransfers(g, gv, gp, rays)
+
+
+def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float):
+    m = len(recv)
+    k = RECEIVER_POINTS
+    per_link = k * r_count
+    lane = dr.arange(mi.UInt32, m * per_link)
+    link = lane // per_link
+    i = (lane // r_count) % k
+    j = lane % r_count
+    r = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(recv, np.uint32)), link)
+    s = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(src, np.uint32)), link)
+
+    # --- receiver point and the source's geometry ----------------------------------------
+    x = dr.gather(mi.Vector3f, buf.recv_pts, r * k + i)
+    nx = dr.gather(mi.Vector3f, buf.recv_nrm, r * k + i)
+    corners = [dr.gather(mi.Vector3f, c, s) for c in buf.poly]
+    ns = dr.gather(mi.Vector3f, buf.normal, s)
+    kind = dr.gather(mi.UInt32, buf.kind, s)
+    planar = kind != VOLUME
+    area_s = dr.gather(mi.Float, buf.area, s)
+    # a point in (or within rounding of) the source's plane sees nothing of it
+    front = dr.dot(ns, x - corners[0]) > 0.1 * offset
+    g_exact = dr.select(planar & front, point_to_polygon_dr(x, nx, corners) * dr.gather(mi.Float, buf.fill, s), 0.0)
+
+    # --- shadow ray to one of the source's stratified points -------------------------------
+    key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
+    step = 2 * (r_count // 2) + 1 if r_count < SOURCE_POINTS else 1
+    t = (key + i * 7 + j * step) % SOURCE_POINTS
+    y = dr.gather(mi.Vector3f, buf.src_pts, s * SOURCE_POINTS + t)
+    ny = dr.gather(mi.Vector3f, buf.src_nrm, s * SOURCE_POINTS + t)
+    o = x + nx * offset
+    d = (y + ny * offset) - o
+    dist2 = dr.squared_norm(d)
+    dist = dr.sqrt(dist2)
+    cos_x = dr.dot(d, nx) / dr.maximum(dist, _TINY)
+    cos_y = -dr.dot(d, ny) / dr.maximum(dist, _TINY)
+    valid = (cos_x > 0) & (cos_y > 0) & (dist > 0)
+    kernel = dr.select(valid, cos_x * cos_y / dr.maximum(dist2, _TINY), 0.0)
+    g_volume = dr.select(valid & ~planar,
+                         cos_x * cos_y * area_s / (dr.pi * dist2 + area_s * (1.0 / SOURCE_POINTS)), 0.0)
+    traced = valid & ((g_exact > 0) | ~planar)
+    ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
+    ray.maxt = dist * (1 - 1e-4)
+    v = dr.select(traced & ~mi_scene.ray_test(ray, traced), 1.0, 0.0)
+    lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, dr.select(traced, 1.0, 0.0)]
+    dr.eval(*lanes)
+    sums = [dr.block_sum(a, r_count) for a in lanes[:5]]
+    n_traced = dr.sum(lanes[5])
+    dr.eval(*sums, n_traced)
+    g_e, k_s, kv_s, g_vol, g_vol_v = (np.asarray(a.numpy(), np.float64).reshape(m, k) for a in sums)
+    g_e /= r_count
+    # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
+    # for the transfer and at each point for its spread; a point none of whose rays could be
+    # aimed (grazing) takes the link's
+    # (a ratio of sums over every ray of the link: over one point's few rays the ratio is
+    # biased towards the area-weighted fraction)
+    ks_l, kv_l = k_s.sum(axis=1, keepdims=True), kv_s.sum(axis=1, keepdims=True)
+    vis_link = np.where(ks_l > 0, kv_l / np.where(ks_l > 0, ks_l, 1.0), 1.0)
+    vis_point = np.where(k_s > 0, kv_s / np.where(k_s > 0, k_s, 1.0), vis_link)
+    g_out = g_e + g_vol / r_count
+    gv_link = g_e * vis_link + g_vol_v / r_count
+    gv_point = g_e * vis_point + g_vol_v / r_count
+    return (g_out.astype(np.float32), gv_link.astype(np.float32), gv_point.astype(np.float32),
+            int(round(float(n_traced[0]))))

@@ -1,0 +1,133 @@
+"""Speed at equal error: mirad's hierarchical core against Mitsuba's path tracer, in one run.
+
+For each scene: a cached high-sample path-traced reference per input triangle; then, both
+sides warmed up (one untimed run each), mirad at a sweep of tolerances and the path tracer as
+a per-triangle estimator (independent seed) at a sweep of samples per triangle, each timed
+and measured against the reference (area-weighted relative L1 per triangle over the mean of
+B, and over the mean of B - E). The time each side needs for 1 % (log-log interpolation
+between the sweep points) and their ratio are printed; ``--record`` appends the table with
+date and machine to validation/RESULTS.md.
+
+Usage (from the repository root)::
+
+    python validation/bench_speed.py [--scenes cornell-box-fine,furnished-room] [--record]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import sys
+import time
+import warnings
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+
+import mirad  # noqa: E402
+from mirad.reference import cached_reference, triangle_reference  # noqa: E402
+from mirad.validate import machine  # noqa: E402
+
+RESULTS = REPO / "validation" / "RESULTS.md"
+SCENES = {
+    "cornell-box": dict(tolerances=(0.1, 0.05, 0.03, 0.02, 0.01, 0.005), pt=(256, 1024, 4096, 16384, 65536),
+                        reference=262144),
+    "cornell-box-fine": dict(tolerances=(0.1, 0.05, 0.03, 0.02, 0.01), pt=(64, 256, 1024, 4096), reference=16384),
+    "furnished-room": dict(tolerances=(0.1, 0.05, 0.03, 0.02, 0.01), pt=(64, 256, 1024, 4096), reference=16384),
+    "plant-canopy": dict(tolerances=(0.1, 0.05, 0.03, 0.02), pt=(64, 256, 1024, 4096), reference=16384),
+    "tiny-bright-room": dict(tolerances=(0.1, 0.05, 0.03, 0.02), pt=(64, 256, 1024, 4096), reference=16384),
+    "wall-pierce": dict(tolerances=(0.1, 0.05, 0.03, 0.02), pt=(64, 256, 1024, 4096), reference=16384),
+}
+TARGET = 0.01
+
+
+def errors(scene, value: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
+    """Area-weighted relative L1 per triangle over mean(B) and over mean(B - E)."""
+    a = scene.tri_area[:, None]
+    diff = float((a * np.abs(value - reference)).sum())
+    reflected = np.maximum(reference - scene.tri_emission, 0.0)
+    return diff / float((a * reference).sum()), diff / max(float((a * reflected).sum()), 1e-300)
+
+
+def time_at(target: float, seconds: list, errs: list) -> float:
+    """Seconds at which error reaches target, log-log interpolated (nan when never reached)."""
+    s, e = np.log(np.asarray(seconds)), np.log(np.asarray(errs))
+    for k in range(len(e)):
+        if e[k] <= np.log(target):
+            if k == 0:
+                return float(np.exp(s[0]))
+            f = (np.log(target) - e[k - 1]) / (e[k] - e[k - 1])
+            return float(np.exp(s[k - 1] + f * (s[k] - s[k - 1])))
+    return float("nan")
+
+
+def run(name: str, cfg: dict) -> tuple[list, str]:
+    scene = mirad.load_scene(str(REPO / "scenes" / name / "scene.xml"))
+    ref = cached_reference(scene, samples_per_triangle=cfg["reference"], seed=12345)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mirad.solve(scene, tolerance=cfg["tolerances"][0])                      # warm-up
+    triangle_reference(scene, samples_per_triangle=cfg["pt"][0], seed=1)        # warm-up
+    lines = [f"| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | estimate | leaves | links "
+             f"| links/leaf | rays | where the time goes |", "|" + "---|" * 11]
+    m_sec, m_err = [], []
+    for tol in cfg["tolerances"]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t = time.perf_counter()
+            sol = mirad.solve(scene, tolerance=tol, seed=0)
+            dt = time.perf_counter() - t
+        e_b, e_r = errors(scene, sol.triangle_radiosity, ref.radiosity)
+        st = sol.stats
+        sec = st["seconds"]
+        busy = ", ".join(f"{k} {v:.3f}" for k, v in sec.items() if k != "total" and v >= 0.001)
+        lines.append(f"| mirad | tol {tol} | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {st['estimated_error']:.2%} | "
+                     f"{st['leaves']:,} | {st['links']:,} | {st['links'] / max(st['leaves'], 1):.1f} | "
+                     f"{st['rays']:,} | {busy} |")
+        print(lines[-1], flush=True)
+        m_sec.append(dt)
+        m_err.append(e_b)
+    p_sec, p_err = [], []
+    for spp in cfg["pt"]:
+        t = time.perf_counter()
+        est = triangle_reference(scene, samples_per_triangle=spp, seed=7)
+        dt = time.perf_counter() - t
+        e_b, e_r = errors(scene, est.radiosity, ref.radiosity)
+        lines.append(f"| path tracer | {spp} paths/triangle | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | | | | | "
+                     f"{est.paths:,} | |")
+        print(lines[-1], flush=True)
+        p_sec.append(dt)
+        p_err.append(e_b)
+    noise = errors(scene, ref.radiosity + ref.stderr * np.sqrt(2 / np.pi), ref.radiosity)[0]
+    tm, tp = time_at(TARGET, m_sec, m_err), time_at(TARGET, p_sec, p_err)
+    summary = (f"**{name}** ({scene.triangle_count:,} triangles; reference {cfg['reference']:,} paths/triangle, "
+               f"noise {noise:.2%}): 1 % rel. L1 per triangle: mirad {tm:.3f} s, path tracer {tp:.3f} s, "
+               f"ratio {tp / tm:.1f}x")
+    print(summary, flush=True)
+    return lines, summary
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", default="cornell-box,cornell-box-fine,furnished-room")
+    parser.add_argument("--record", action="store_true")
+    args = parser.parse_args(argv)
+    out = []
+    for name in args.scenes.split(","):
+        lines, summary = run(name, SCENES[name])
+        out.append("\n".join([summary, "", *lines, ""]))
+    if args.record:
+        stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+        text = (f"\n## Hierarchical core against the path tracer ({stamp}, {machine()})\n\n"
+                "`python validation/bench_speed.py`: both sides warmed up, timed in one run; errors against a "
+                "cached path-traced reference.\n\n" + "\n".join(out))
+        with open(RESULTS, "a", encoding="utf-8") as f:
+            f.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
