@@ -264,6 +264,8 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
         kind = shape.class_name()
         types.append(kind)
         verts, faces, uv, curve = _triangulate(shape, sid, where)
+        if not shape.is_mesh():
+            faces = _curved_shading_side(mi_scene, shape, verts, faces)
         if not np.all(np.isfinite(verts)):
             raise SceneError(
                 f"{where}: shape '{sid}' has NaN or Inf vertex positions; repair or re-export the mesh"
@@ -400,10 +402,11 @@ def _triangulate(shape, sid: str, where: str):
         uv = None
         if shape.has_vertex_texcoords():
             uv = np.array(shape.vertex_texcoords_buffer().numpy(), dtype=np.float64).reshape(-1, 2)
-        if shape.has_vertex_normals():
-            _check_vertex_normals(shape, sid, where, faces)
         if shape.has_flipped_normals():
             faces = faces[:, ::-1].copy()
+        if shape.has_vertex_normals():
+            _check_vertex_normals(shape, sid, where, faces)
+            faces = _face_shading_side(shape, verts, faces)
         return verts, faces, uv, flat
     if kind == mi.ShapeType.Disk:
         m = _to_world_matrix(shape)
@@ -432,6 +435,69 @@ def _triangulate(shape, sid: str, where: str):
     if shape.has_flipped_normals():
         faces = faces[:, ::-1].copy()
     return verts, faces, uv, flat
+
+
+def _face_shading_side(shape, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Wind every triangle so that its front is the side Mitsuba's shading normal points to.
+
+    Mitsuba lights a surface (diffuse BSDF, area emitter) on the side of its *shading* normal, which
+    for a mesh with vertex normals is the interpolated vertex normal (negated by ``flip_normals``),
+    while the winding gives the geometric one. They disagree under a mirroring transform
+    (negative determinant: Mitsuba transforms positions and normals, so the winding turns over but
+    the normals do not), which CAD and Blender exports often carry; mirad takes its front from the
+    winding, so those triangles are turned over here. (F, 3) int in, (F, 3) int out.
+    """
+    normals = np.array(shape.vertex_normals_buffer().numpy(), dtype=np.float64).reshape(-1, 3)
+    tv = verts[faces]
+    winding = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    shading = normals[faces].sum(axis=1) * (-1.0 if shape.has_flipped_normals() else 1.0)
+    turn = np.einsum("ij,ij->i", winding, shading) < 0
+    if turn.any():
+        faces = faces.copy()
+        faces[turn] = faces[turn][:, ::-1]
+    return faces
+
+
+def _curved_shading_side(mi_scene, shape, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Like ``_face_shading_side`` for mirad's tessellation of a disk, sphere or cylinder.
+
+    Mitsuba's normal of these shapes comes from their own formulas (a sphere's points outward
+    whatever the transform, a disk's is the transformed +z normal), so it is read where Mitsuba
+    reports it: one ray per triangle, from half its shortest edge above the centroid (more than
+    the tessellation's sagitta) towards it, and the triangle is turned over where the normal at the
+    hit on this shape faces the other way. Triangles whose ray hits something else keep their winding.
+    """
+    tv = verts[faces]
+    winding = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    length = np.linalg.norm(winding, axis=1)
+    ok = length > 0
+    n = np.zeros_like(winding)
+    n[ok] = winding[ok] / length[ok, None]
+    edges = np.linalg.norm(tv - np.roll(tv, 1, axis=1), axis=2).min(axis=1)
+    lift = 0.5 * edges
+    origin = tv.mean(axis=1) + n * lift[:, None]
+    ray = mi.Ray3f(_points(origin), _points(-n, mi.Vector3f))
+    ray.maxt = mi.Float((2.0 * lift).astype(np.float32))
+    si = mi_scene.ray_intersect(ray)
+    mine = np.array((si.is_valid() & (si.shape == mi.ShapePtr(shape))).numpy(), dtype=bool)
+    sh = _columns(si.sh_frame.n)
+    turn = ok & mine & (np.einsum("ij,ij->i", sh, n) < 0)
+    if turn.any():
+        faces = faces.copy()
+        faces[turn] = faces[turn][:, ::-1]
+    return faces
+
+
+def _points(a: np.ndarray, kind=None):
+    """(N, 3) float array as a Dr.Jit Point3f (or the given 3-vector type)."""
+    kind = kind or mi.Point3f
+    return kind(*[mi.Float(np.ascontiguousarray(a[:, i], dtype=np.float32)) for i in range(3)])
+
+
+def _columns(v) -> np.ndarray:
+    """A Dr.Jit 3-vector of width N as an (N, 3) float64 array."""
+    arr = np.array(v.numpy(), dtype=np.float64)
+    return arr.T if arr.ndim == 2 and arr.shape[0] == 3 else arr.reshape(-1, 3)
 
 
 def _check_vertex_normals(shape, sid: str, where: str, faces: np.ndarray) -> None:
