@@ -660,7 +660,8 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
             part = tris[lo:hi]
             owner = np.repeat(np.arange(len(part)), counts[lo:hi])
             index_in_tri = np.arange(len(owner)) - np.repeat(np.cumsum(counts[lo:hi]) - counts[lo:hi], counts[lo:hi])
-            si, qmc = _material_interactions(scene, shape, part, owner, index_in_tri)
+            si, qmc = _material_interactions(scene, shape, part, owner, index_in_tri,
+                                             grid=np.repeat(np.sqrt(counts[lo:hi]).astype(np.int64), counts[lo:hi]))
             if bsdf is not None:
                 for side, rho, tau in ((+1.0, scene.tri_rho, scene.tri_transmittance),
                                        (-1.0, scene.back_rho, scene.back_transmittance)):
@@ -694,7 +695,7 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
 
 #: Sample points per triangle: least for a diffuse BSDF (one direction each is exact), least for a
 #: non-diffuse one (each point also samples a direction), per texel of a bitmap a triangle covers.
-_POINTS, _DIRECTIONS, _PER_TEXEL = 16, 64, 4
+_POINTS, _DIRECTIONS, _PER_TEXEL = 16, 64, 16
 #: Lanes of the shape-wide estimate of a non-diffuse BSDF (points by area, directions, lobes).
 _SHAPE_SAMPLES = 1 << 15
 #: Most samples per triangle, and per Dr.Jit launch.
@@ -731,7 +732,8 @@ def _texel_density(objects) -> float:
 
 
 def _sample_counts(scene: Scene, tris: np.ndarray, objects, *, minimum: int) -> np.ndarray:
-    """(n,) int samples per triangle: ``minimum``, or ``_PER_TEXEL`` per texel covered if more."""
+    """(n,) int samples per triangle: ``minimum``, or ``_PER_TEXEL`` per texel covered if more,
+    rounded up to a square (``_grid_points``) and at most ``_MAX_PER_TRIANGLE``."""
     counts = np.full(len(tris), minimum, np.int64)
     density = _texel_density(objects)
     if density > 0 and scene.vertex_uv is not None:
@@ -739,7 +741,8 @@ def _sample_counts(scene: Scene, tris: np.ndarray, objects, *, minimum: int) -> 
         e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
         texels = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) * density
         counts = np.maximum(counts, np.ceil(_PER_TEXEL * texels).astype(np.int64))
-    return np.minimum(counts, _MAX_PER_TRIANGLE)
+    side = np.ceil(np.sqrt(np.minimum(counts, _MAX_PER_TRIANGLE))).astype(np.int64)
+    return side * side  # a square number: a side x side grid of sub-triangles
 
 
 def _batches(counts: np.ndarray):
@@ -766,16 +769,41 @@ def _golden(d: int) -> np.ndarray:
 _ALPHA = _golden(8)
 
 
-def _material_interactions(scene: Scene, shape, tris: np.ndarray, owner: np.ndarray, index: np.ndarray):
-    """SurfaceInteraction3f at low-discrepancy points: lane k on triangle ``tris[owner[k]]``.
+def _grid_points(m: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Point (a, b) of sub-triangle k of the m x m equal sub-triangles of the unit triangle.
 
-    ``index`` (N,) int is each lane's position in the sequence. Returns (si, qmc (N, 5) float in
-    [0, 1): the remaining dimensions, for the direction and the BSDF sample).
+    Returns barycentric (u, v), (N,) each. Row i (along v = 0) holds m - i upward then m - i - 1
+    downward sub-triangles, so row i starts at k = i (2m - i). (a, b) is a point of the unit triangle
+    (a + b <= 1), the same jittered offset in every sub-triangle would alias against a texel grid,
+    so callers pass a low-discrepancy one per lane: stratified sampling, every lane the same area.
+    """
+    m = m.astype(np.int64)
+    i = np.floor(m - np.sqrt(np.maximum(m * m - k, 0))).astype(np.int64)
+    i -= (i * (2 * m - i) > k)                                   # float rounding, either way
+    i += ((i + 1) * (2 * m - i - 1) <= k) & (i + 1 < m)
+    r = k - i * (2 * m - i)
+    up = r < m - i
+    j = np.where(up, r, r - (m - i))
+    u = np.where(up, i + a, i + 1 - a)
+    v = np.where(up, j + b, j + 1 - b)
+    return u / m, v / m
+
+
+def _material_interactions(scene: Scene, shape, tris: np.ndarray, owner: np.ndarray, index: np.ndarray,
+                           grid: np.ndarray | None = None):
+    """SurfaceInteraction3f at sample points: lane k on triangle ``tris[owner[k]]``.
+
+    ``index`` (N,) int is each lane's position in the low-discrepancy sequence. With ``grid`` (N,)
+    int each lane gets its own cell of a grid x grid subdivision of the triangle (``index`` then runs
+    over grid^2) and a point in it from the sequence; without, the sequence spreads the points over
+    the whole triangle (uniform by area). Returns (si, qmc (N, 5)
+    float in [0, 1): the remaining dimensions, for the direction and the BSDF sample).
     """
     seq = np.mod(0.5 + index[:, None] * _ALPHA[None, :7], 1.0)               # (N, 7)
-    u, v = seq[:, 0].copy(), seq[:, 1].copy()
-    fold = u + v > 1
-    u[fold], v[fold] = 1 - u[fold], 1 - v[fold]
+    root = np.sqrt(seq[:, 0])                                                # square to triangle,
+    u, v = root * (1 - seq[:, 1]), root * seq[:, 1]                          # area-preserving
+    if grid is not None:
+        u, v = _grid_points(grid, index, u, v)
     w = np.stack([1 - u - v, u, v], 1)                                       # (N, 3) barycentric
     faces = scene.faces[tris][owner]
     pts = np.einsum("nj,njc->nc", w, scene.vertices[faces])
