@@ -64,6 +64,10 @@ class Scene:
         ``shape`` id, ``bsdf`` class, ``what`` ("transmission", "opacity", "non-diffuse reflection"),
         ``area`` m^2, and area means (C,) of ``albedo`` (used), ``transmitted`` (lost), ``non_diffuse``
         (redirected); ``model_error()`` turns them into a relative error
+    origin : (3,) float            m; the scene as loaded was moved by -origin so that its bounding box
+        is centred at 0 (float32 precision far from the origin; zero for scenes near it): every
+        position above, ``mi_scene`` and its sensors are in this internal frame; ``to_user`` /
+        ``to_internal`` convert points (exports and probes work in the user's frame)
     """
 
     mi_scene: object
@@ -95,9 +99,11 @@ class Scene:
     back_transmittance: np.ndarray | None = None
     tri_specular: np.ndarray | None = None
     approximations: list = field(default_factory=list)
+    origin: np.ndarray | None = None
 
     def __post_init__(self):
         T = len(self.faces)
+        self.origin = np.zeros(3) if self.origin is None else np.asarray(self.origin, dtype=np.float64)
         if self.tri_face is None:
             self.tri_face = np.arange(T)
         for name in ("tri_transmittance", "back_transmittance", "tri_specular"):
@@ -229,6 +235,14 @@ class Scene:
         ratio = np.divide(lost.sum(axis=0), total, out=np.zeros_like(total), where=total > 0)
         return float(ratio.max())
 
+    def to_user(self, points: np.ndarray) -> np.ndarray:
+        """(..., 3) float internal positions (``vertices``, m) in the user's frame: + ``origin``."""
+        return np.asarray(points, dtype=np.float64) + self.origin
+
+    def to_internal(self, points: np.ndarray) -> np.ndarray:
+        """(..., 3) float positions in the user's frame (probe points, m) in the internal one."""
+        return np.asarray(points, dtype=np.float64) - self.origin
+
     def shape_index(self, shape_id: str) -> int:
         try:
             return self.shape_ids.index(shape_id)
@@ -274,7 +288,68 @@ def load_scene(source, *, variant: str | None = None) -> Scene:
         raise SceneError(
             f"cannot load a scene from {type(source).__name__}; give an XML path, a Mitsuba dict or an mi.Scene"
         )
-    return _ingest(mi_scene, path, variant)
+    where = path or ("<dict>" if isinstance(source, dict) else "<scene>")
+    origin, notes = _recentre(mi_scene, where, own=not isinstance(source, mi.Scene))
+    scene = _ingest(mi_scene, path, variant, origin=origin)
+    for note in notes:
+        _warn_once(scene, note)
+    return scene
+
+
+#: A scene whose bounding-box centre lies farther than this many diagonals from the origin is
+#: moved to it (float32 rays and offsets lose precision with the distance); nearer ones stay put.
+RECENTRE = 100.0
+#: Warn when float32 rounding of the positions Mitsuba loaded exceeds this fraction of the diagonal.
+PRECISION = 1e-5
+
+
+def _recentre(mi_scene, where: str, *, own: bool) -> tuple[np.ndarray, list]:
+    """Move a scene far from the origin to it; return (origin (3,) float m, warnings to give).
+
+    Mitsuba holds positions in float32: at distance d from the origin they are rounded to about
+    d * 2^-24, and ray offsets and shadow tests relative to the scene's size fail there (a 2 m scene
+    at 1e5 m came out several per cent dark). Mesh vertices, the transforms of analytic shapes,
+    sensors and emitters, and point-light positions are translated by -centre, in float64 before
+    rounding, which keeps whatever precision the file gave at load. A scene handed over as an
+    ``mi.Scene`` (``own=False``) belongs to the caller and is not moved; it gets a warning instead.
+    """
+    box = mi_scene.bbox()
+    lo, hi = np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return np.zeros(3), []
+    centre = 0.5 * (lo + hi)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    far = float(np.abs(np.concatenate([lo, hi])).max())
+    notes = []
+    rounding = far * 2.0 ** -24
+    if rounding > PRECISION * diag:
+        notes.append(f"{where}: the scene lies {far:.3g} m from the origin, {far / diag:.3g} times its size; "
+                     f"Mitsuba stores positions in float32, rounded there by up to {rounding:.2g} m ({rounding / diag:.1e} "
+                     "of the scene), which mirad cannot restore; move the scene near the origin in the "
+                     f"file (subtract about {np.round(centre, 1).tolist()}) for full precision")
+    if np.linalg.norm(centre) <= RECENTRE * diag:
+        return np.zeros(3), notes
+    if not own:
+        notes.append(f"{where}: the scene's centre lies {np.linalg.norm(centre):.3g} m from the origin and "
+                     "an mi.Scene given to mirad is not moved, so ray offsets lose float32 precision (results "
+                     "can come out dark); give mirad.load_scene the file or dict so it can re-centre it")
+        return np.zeros(3), notes
+    params = mi.traverse(mi_scene)
+    for key in list(params.keys()):
+        if key.endswith(".vertex_positions"):
+            v = np.array(params[key].numpy(), dtype=np.float64).reshape(-1, 3) - centre
+            params[key] = type(params[key])(v.reshape(-1).astype(np.float32))
+        elif key.endswith(".to_world"):
+            value = params[key]
+            m = np.array(value.matrix.numpy() if hasattr(value.matrix, "numpy") else value.matrix,
+                         dtype=np.float64).reshape(4, 4)
+            m[:3, 3] -= centre
+            params[key] = type(value)(mi.ScalarMatrix4f(m.tolist()))
+        elif key.endswith(".position"):
+            p = np.array(params[key], dtype=np.float64).reshape(-1)[:3] - centre
+            params[key] = type(params[key])(*p.tolist())
+    params.update()
+    return centre, notes
 
 
 _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user should do)
@@ -298,7 +373,7 @@ def _explain_load_error(where: str, exc: Exception) -> str:
     return f"{where}: Mitsuba could not load the scene ({detail}); {fix}"
 
 
-def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
+def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | None = None) -> Scene:
     where = path or "<scene>"
     shapes = list(mi_scene.shapes())
     if not shapes:
@@ -363,7 +438,7 @@ def _ingest(mi_scene, path: str | None, variant: str) -> Scene:
         tri_rho=np.zeros((len(faces), 3)), tri_emission=np.zeros((len(faces), 3)),
         back_rho=np.zeros((len(faces), 3)), curve_center=curve_center, curve_axis=curve_axis,
         curve_radius=curve_radius, vertex_uv=vertex_uv, light_emitters=[], light_kinds=[],
-        variant=variant, dropped_triangles=dropped, tri_face=tri_face,
+        variant=variant, dropped_triangles=dropped, tri_face=tri_face, origin=origin,
     )
     for message in pending:
         _warn_once(scene, message)

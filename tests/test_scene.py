@@ -224,3 +224,41 @@ def test_bitmap_reflectance_is_the_textures_mean_over_each_triangle(filter_type)
         si.uv = mi.Point2f(mi.Float(gu[inside]), mi.Float(gv[inside]))
         exact = np.array(texture.eval(si).numpy()).reshape(3, -1).mean(axis=1)
         np.testing.assert_allclose(scene.tri_rho[t], exact, rtol=0.01)
+
+
+# ------------------------------------------------------------------------------------------
+# Far from the origin
+# ------------------------------------------------------------------------------------------
+
+def _open_box(origin):
+    """Floor, wall and a ceiling light (2 m across), placed at ``origin``."""
+    t = T().translate(list(origin))
+    return {"type": "scene", "floor": _square(t, "floor"),
+            "wall": _square(t @ T().translate([0, 1, 1]).rotate([1, 0, 0], 90), "wall"),
+            "light": _square(t @ T().translate([0, 0, 2]).rotate([1, 0, 0], 180), "light", radiance=1.0)}
+
+
+@pytest.mark.parametrize("origin", [(1e5, 0.0, 0.0), (1e5, 3e4, -1e5)])
+def test_a_scene_far_from_the_origin_solves_like_the_same_scene_at_it(origin):
+    """Georeferenced placement (issue 18: 13 % dark at 1e5 m): the loader re-centres the scene, so the
+    solution matches the one at the origin; positions convert back with ``to_user``, and the float32
+    rounding Mitsuba already applied is said."""
+    near = mirad.load_scene(_open_box((0.0, 0.0, 0.0)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        far = mirad.load_scene(_open_box(origin))
+    assert np.all(near.origin == 0) and np.linalg.norm(far.origin - origin) < 2.0
+    np.testing.assert_allclose(far.to_user(far.vertices), near.vertices + origin, atol=0.02)
+    assert np.abs(far.vertices).max() <= 2.0 + 1e-6                     # internal frame: centred
+    assert any("from the origin" in str(w.message) and "float32" in str(w.message) for w in caught)
+    a, b = (mirad.solve(s, tolerance=0.05) for s in (near, far))
+    for sid in ("floor", "wall"):
+        np.testing.assert_allclose(b.shape_radiosity(sid), a.shape_radiosity(sid), rtol=1e-3)
+
+
+def test_an_mi_scene_far_away_is_left_alone_with_a_warning():
+    mi_scene = mi.load_dict(_open_box((1e5, 0.0, 0.0)))
+    before = np.array(mi_scene.bbox().min)
+    with pytest.warns(UserWarning, match="is not moved"):
+        scene = mirad.load_scene(mi_scene)
+    assert np.all(scene.origin == 0) and np.all(np.array(mi_scene.bbox().min) == before)
