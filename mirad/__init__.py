@@ -11,6 +11,7 @@ from . import _runtime  # noqa: F401  (must run before mitsuba is imported)
 from .errors import (EnvironmentProblem, MiradError, OutputError, SceneError, SettingsError,
                      SolutionMismatch)
 from .scene import Scene, load_scene
+from .options import check_render, default
 from .settings import Settings, make_settings
 from .solution import Solution, load_solution
 
@@ -43,27 +44,37 @@ def _register_plugin() -> None:
 _register_plugin()
 
 
-def render(scene, solution=None, *, spp: int = 4, **options):
-    """Image (H, W, 3) of a radiosity solution from the scene's sensor; see mirad.display.render."""
+def render(scene, solution=None, *, spp: int = default("spp"), seed: int = 0, smooth: bool = default("smooth"),
+           final_gather: bool = default("final_gather"), gather_rays: int = default("gather_rays"), sensor: int = 0,
+           **options):
+    """Image (H, W, 3) float32 of a radiosity solution, radiance in W/(m^2 sr), from the scene's sensor.
+
+    ``solution`` None solves the scene first with ``options`` (fields of mirad.Settings; ``seed``
+    seeds both); the display options are those of mirad.options.RENDER (see mirad.display.render).
+    """
     from .display import render as _render
 
-    return _render(scene, solution, spp=spp, **options)
+    check_render(spp=spp, gather_rays=gather_rays, smooth=smooth, final_gather=final_gather)
+    loaded = load_scene(scene, variant=options.get("variant"))
+    if solution is None:
+        solution = solve(loaded, seed=seed, **options)
+    elif options:
+        raise SettingsError(f"options {sorted(options)} only apply when render() solves; "
+                            "drop them or pass solution=None")
+    return _render(loaded, solution, spp=spp, seed=seed, smooth=smooth, final_gather=final_gather,
+                   gather_rays=gather_rays, sensor=sensor)
 
 
-def solve(scene, *, tolerance: float = 0.03, samples_per_link: int = 16, seed: int = 0,
-          solver: str | None = None, variant: str | None = None, quiet: bool = True,
-          **options) -> Solution:
+def solve(scene, *, quiet: bool = True, **options) -> Solution:
     """Solve the radiosity of a scene (XML path, Mitsuba dict, mi.Scene or mirad Scene).
 
     Parameters
     ----------
-    tolerance : target relative error of the solution (see mirad.settings)
-    samples_per_link : shadow rays and receiver quadrature points per link
-    seed : random seed (same seed, same input, same variant -> bitwise same output)
-    solver : "gmres" (default), "gauss-seidel" or "jacobi"
-    variant : Mitsuba variant; default cuda_ad_rgb with a GPU, else llvm_ad_rgb
-    quiet : hide progress bars
-    **options : further fields of mirad.Settings
+    scene : the scene
+    quiet : hide progress bars (the API is quiet unless told otherwise; the CLI is not)
+    **options : fields of mirad.Settings (``tolerance``, ``samples_per_link``, ``seed``, ``solver``,
+        ``oracle``, ``clustering``, ``max_links``, ``workers``, ...); each one's meaning, unit and
+        default are documented there once, and any other name is an error
 
     Returns
     -------
@@ -71,7 +82,6 @@ def solve(scene, *, tolerance: float = 0.03, samples_per_link: int = 16, seed: i
     """
     from .solver import solve_problem
 
-    settings = make_settings(tolerance=tolerance, samples_per_link=samples_per_link, seed=seed,
-                             solver=solver, variant=variant, quiet=quiet, **options)
+    settings = make_settings(quiet=quiet, **options)
     loaded = load_scene(scene, variant=settings.variant)
     return solve_problem(loaded, settings)

@@ -9,23 +9,24 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .arrays import group_mean, group_sum, to_point3, to_vector3
 from .errors import OutputError, SettingsError
-from .solution import atomic_write, display_colors
+from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_exr
 
-__all__ = ["write_ply", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
+__all__ = ["write_ply", "refined_mesh", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
            "bake_lightmaps", "write_lightmaps", "exr_bytes", "png_bytes", "read_exr", "read_points",
-           "write_probe_table", "TABLE_SUFFIXES", "PROBE_COLUMNS"]
+           "write_probe_table", "lightmap_names", "TABLE_SUFFIXES", "PROBE_COLUMNS", "PLY_MESHES"]
 
 #: Output suffixes of the per-triangle table.
 TABLE_SUFFIXES = (".csv", ".npz")
 _CHANNELS = "rgb"
+#: What ``write_ply`` writes: the input mesh or the refined mesh of the solution's leaves.
+PLY_MESHES = ("input", "refined")
 #: Columns a probe file must have (any order, more columns are ignored).
 PROBE_COLUMNS = ("x", "y", "z", "nx", "ny", "nz")
 
@@ -34,67 +35,90 @@ PROBE_COLUMNS = ("x", "y", "z", "nx", "ny", "nz")
 # PLY
 # ------------------------------------------------------------------------------------------
 
-def write_ply(solution, path) -> Path:
-    """Binary PLY of the input mesh with per-vertex colours and float values.
+def write_ply(solution, path, *, mesh: str = "input", exposure: str = "scene") -> Path:
+    """Binary PLY with per-vertex colours and float values, W/m^2.
 
-    Vertex properties: ``red, green, blue, alpha`` (8-bit sRGB display colours of B/pi, the 99th
-    percentile mapped to white), ``radiosity_r/g/b`` and ``irradiance_r/g/b`` (float32, W/m^2,
-    area-weighted over the triangles around each vertex, front side) and ``error_r/g/b`` (the
-    estimated error map of the radiosity, W/m^2, see ``Solution.triangle_error``).
+    ``mesh="input"``: the input mesh; vertex values are area-weighted over the triangles around
+    each vertex (front side). ``mesh="refined"``: the solution's own mesh, the front-side leaf
+    elements with three unshared vertices each, so every element shows its own radiosity (flat,
+    as radiosity tools export their solutions; shadow-texture detail at the corners).
+
+    Vertex properties: ``red, green, blue, alpha`` (8-bit sRGB display colours of B/pi),
+    ``radiosity_r/g/b``, ``irradiance_r/g/b`` and ``error_r/g/b`` (float32: radiosity, irradiance
+    and the estimated error map of the radiosity, see ``Solution.triangle_error``). The colours
+    map the 99th percentile to white over the non-emitting surfaces (``exposure="scene"``,
+    so a light in view does not darken everything else) or over all (``exposure="all"``).
     """
     import trimesh
 
-    b = solution.vertex_radiosity
-    h = _vertex_mean(solution, solution.triangle_irradiance)
-    err = _vertex_mean(solution, solution.triangle_error)
-    mesh = trimesh.Trimesh(vertices=solution.vertices, faces=solution.faces, process=False)
-    mesh.visual.vertex_colors = display_colors(b)
+    if mesh not in PLY_MESHES:
+        raise SettingsError(f"PLY mesh={mesh!r} must be one of {', '.join(PLY_MESHES)}")
+    if exposure not in ("scene", "all"):
+        raise SettingsError(f"PLY exposure={exposure!r} must be 'scene' (ignore emitters) or 'all'")
+    if mesh == "input":
+        verts, faces = solution.vertices, solution.faces
+        b = solution.vertex_radiosity
+        h = _vertex_mean(solution, solution.triangle_irradiance)
+        err = _vertex_mean(solution, solution.triangle_error)
+        emitting = _vertex_mean(solution, solution.triangle_emission).max(1) > 0
+    else:
+        verts, faces, b, h, err, emitting = refined_mesh(solution)
+    trimesh_mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
+    trimesh_mesh.visual.vertex_colors = display_colors(b, exclude=emitting if exposure == "scene" else None)
     for c, name in enumerate(_CHANNELS[: b.shape[1]]):
-        mesh.vertex_attributes[f"radiosity_{name}"] = b[:, c].astype(np.float32)
-        mesh.vertex_attributes[f"irradiance_{name}"] = h[:, c].astype(np.float32)
-        mesh.vertex_attributes[f"error_{name}"] = err[:, c].astype(np.float32)
-    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
-    path = Path(path)
-    atomic_write(path, lambda handle: handle.write(data))
-    return path
+        trimesh_mesh.vertex_attributes[f"radiosity_{name}"] = b[:, c].astype(np.float32)
+        trimesh_mesh.vertex_attributes[f"irradiance_{name}"] = h[:, c].astype(np.float32)
+        trimesh_mesh.vertex_attributes[f"error_{name}"] = err[:, c].astype(np.float32)
+    data = trimesh.exchange.ply.export_ply(trimesh_mesh, encoding="binary", include_attributes=True)
+    return atomic_write(Path(path), lambda handle: handle.write(data))
+
+
+def refined_mesh(solution) -> tuple:
+    """The front-side leaf elements as a mesh with unshared vertices.
+
+    Returns (vertices (3N, 3) m, faces (N, 3) int, radiosity (3N, C), irradiance (3N, C),
+    error (3N, C) W/m^2, emitting (3N,) bool); radiosity carries the shadow-texture detail at
+    each corner of a textured leaf.
+    """
+    from .arrays import LEAF_CORNER_UV
+
+    rows = np.flatnonzero(solution.leaf_side == 0)
+    n = len(rows)
+    leaf = np.repeat(rows, 3)
+    uv = np.tile(LEAF_CORNER_UV, (n, 1))
+    b = solution.radiosity_at(leaf, uv)
+    h = solution.leaf_irradiance[leaf]
+    err = solution.leaf_error[leaf]
+    emitting = solution.triangle_emission[solution.leaf_triangle[leaf]].max(1) > 0
+    verts = solution.leaf_vertices[rows].reshape(-1, 3)
+    return verts, np.arange(3 * n).reshape(n, 3), b, h, err, emitting
 
 
 def _vertex_mean(solution, per_triangle: np.ndarray) -> np.ndarray:
-    faces, area = solution.faces, solution.triangle_area
-    n_vert = len(solution.vertices)
-    idx = faces.ravel()
-    w = np.repeat(area, 3)
-    total = np.stack([np.bincount(idx, weights=w * np.repeat(per_triangle[:, c], 3), minlength=n_vert)
-                      for c in range(per_triangle.shape[1])], 1)
-    return total / np.maximum(np.bincount(idx, weights=w, minlength=n_vert), 1e-300)[:, None]
+    """(V, C) area-weighted mean over the triangles around each vertex of per-triangle values (T, C)."""
+    return group_mean(solution.faces.ravel(), np.repeat(per_triangle, 3, axis=0), len(solution.vertices),
+                      weights=np.repeat(solution.triangle_area, 3))
 
 
 # ------------------------------------------------------------------------------------------
 # Tables
 # ------------------------------------------------------------------------------------------
 
-def _back_values(solution):
-    """(back irradiance (T, C), back reflectance (T, C)); zero where a triangle is one-sided."""
-    h_back = solution._side(solution._per_patch(solution._a["leaf_irradiance"]), 1)
-    rho_back = solution._a.get("back_rho")
-    if rho_back is None:
-        rho_back = np.zeros_like(h_back)
-    return h_back, rho_back
-
-
 def triangle_table(solution) -> dict:
     """Per input triangle: dict of arrays, T rows each.
 
-    ``shape`` (T,) int index into ``shape_ids``; ``shape_id`` (T,) str; ``triangle`` (T,) int global
-    index; ``area`` (T,) m^2; ``radiosity``, ``irradiance`` (T, C) W/m^2 (front side);
+    ``shape`` (T,) int index into ``shape_ids``; ``shape_id`` (T,) str; ``triangle`` (T,) int
+    scene-wide index (shapes in order); ``area`` (T,) m^2; ``radiosity``, ``irradiance`` (T, C) W/m^2 (front side);
     ``back_radiosity``, ``back_irradiance`` (T, C) W/m^2 (zero where one-sided);
     ``absorbed`` (T, C) W = (1 - rho) H A, front plus back; ``error`` (T, C) W/m^2, the
-    estimated error of ``radiosity`` (the error map).
+    estimated error of ``radiosity`` (the error map); ``triangle_in_shape`` (T,) int, the
+    triangle's index within its shape (the shape's own face order; last, so earlier columns keep
+    their place).
     """
     area = solution.triangle_area
-    rho = solution._a["triangle_rho"]
+    rho = solution.triangle_reflectance
     h = solution.triangle_irradiance
-    h_back, rho_back = _back_values(solution)
+    h_back, rho_back = solution.back_irradiance, solution.back_reflectance
     absorbed = ((1 - rho) * h + (1 - rho_back) * h_back) * area[:, None]
     shape = np.asarray(solution.triangle_shape, dtype=np.int64)
     return {
@@ -108,6 +132,7 @@ def triangle_table(solution) -> dict:
         "back_irradiance": h_back,
         "absorbed": absorbed,
         "error": solution.triangle_error,
+        "triangle_in_shape": solution.triangle_in_shape,
     }
 
 
@@ -121,11 +146,8 @@ def shape_summary(solution) -> dict:
     n = len(solution.shape_ids)
     shape, area = table["shape"], table["area"]
     total_area = np.bincount(shape, weights=area, minlength=n)
-    channels = table["radiosity"].shape[1]
-    mean = np.stack([np.bincount(shape, weights=area * table["radiosity"][:, c], minlength=n)
-                     for c in range(channels)], 1) / np.maximum(total_area, 1e-300)[:, None]
-    absorbed = np.stack([np.bincount(shape, weights=table["absorbed"][:, c], minlength=n)
-                         for c in range(channels)], 1)
+    mean = group_mean(shape, table["radiosity"], n, weights=area)
+    absorbed = group_sum(shape, table["absorbed"], n)
     return {"shape_id": np.asarray(solution.shape_ids, dtype=str),
             "triangles": np.bincount(shape, minlength=n), "area": total_area,
             "mean_radiosity": mean, "absorbed": absorbed}
@@ -192,13 +214,18 @@ def read_points(path) -> tuple:
     Returns (points (P, 3) float, normals (P, 3) float). Raises SettingsError naming the file and
     the problem (missing columns, a value that is not a finite number, a zero normal).
     """
-    from .errors import SettingsError
-
     path = Path(path)
     if not path.is_file():
         raise SettingsError(f"points file '{path}' does not exist; give a CSV with columns {','.join(PROBE_COLUMNS)}")
-    with open(path, newline="") as handle:
-        rows = [row for row in csv.reader(handle) if row and any(cell.strip() for cell in row)]
+    raw = path.read_bytes()
+    try:
+        if b"\0" in raw:
+            raise UnicodeDecodeError("utf-8", raw, 0, 1, "NUL byte")
+        text = raw.decode("utf-8-sig")          # a byte-order mark (Excel's "CSV UTF-8") is dropped
+    except UnicodeDecodeError:
+        raise SettingsError(f"points file '{path}' is not a text CSV (binary or not UTF-8); save it as "
+                            f"UTF-8 text with a header {','.join(PROBE_COLUMNS)}") from None
+    rows = [row for row in csv.reader(io.StringIO(text, newline="")) if row and any(cell.strip() for cell in row)]
     if not rows:
         raise SettingsError(f"points file '{path}' is empty; give a header {','.join(PROBE_COLUMNS)} and one row per point")
     header = [cell.strip().lower() for cell in rows[0]]
@@ -231,16 +258,21 @@ def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance:
     table = {name: col for name, col in zip(PROBE_COLUMNS, np.column_stack([points, normals]).T)}
     table["irradiance"] = np.asarray(irradiance, dtype=np.float64)
     data = _csv_bytes(table)
-    atomic_write(path, lambda handle: handle.write(data))
-    return path
+    return atomic_write(path, lambda handle: handle.write(data))
 
 
 # ------------------------------------------------------------------------------------------
 # Lightmaps
 # ------------------------------------------------------------------------------------------
 
+def default_supersample(resolution: int) -> int:
+    """Points per texel side when none is given: at least 2, and at least 256 points across the map,
+    so a coarse map still averages each texel's footprint (64 -> 4, 128 and up -> 2)."""
+    return max(2, -(-256 // int(resolution)))
+
+
 def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None = None,
-                   dilate: int = 8, quantity: str = "radiosity") -> dict:
+                   dilate: int = 8, quantity: str = "radiosity", quiet: bool = True) -> dict:
     """Radiosity (W/m^2) baked into a (resolution, resolution, 3) texture per shape with UVs
     (``quantity="error"``: the estimated error map instead, W/m^2).
 
@@ -248,35 +280,39 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None =
     Texel (row i, column j) covers u in [j, j+1)/R and v in [i, i+1)/R: row 0 is v = 0, as
     Mitsuba's ``bitmap`` texture reads it, so a map can texture the same shape directly. Each
     texel averages ``supersample``^2 points, each showing the radiosity of the leaf element under
-    it (default: enough for at least 1024 points across the map, so a coarse map of a finely
-    refined solution still averages each texel's footprint); empty texels next to covered ones are filled from their neighbours ``dilate`` times so
-    bilinear lookups at island edges do not pull in black. Shapes without UVs are left out.
+    it (default ``default_supersample(resolution)``, the same for the API and the CLI); empty
+    texels next to covered ones are filled from their neighbours ``dilate`` times so bilinear
+    lookups at island edges do not pull in black. Shapes without UVs are left out; ``quiet=False``
+    shows a progress bar over the shapes.
     Returns {shape_id: image}.
     """
-    from .display import Shading
+    from tqdm.auto import tqdm
+
+    from .shading import Shading
 
     if isinstance(resolution, bool) or int(resolution) != resolution or not 1 <= resolution <= 16384:
         raise SettingsError(f"lightmap resolution={resolution!r} must be an integer in [1, 16384], e.g. 256")
     resolution = int(resolution)
     if supersample is None:
-        supersample = max(2, -(-1024 // resolution))
-    a = solution._a
-    uv_all = a.get("vertex_uv")
+        supersample = default_supersample(resolution)
+    if isinstance(supersample, bool) or int(supersample) != supersample or not 1 <= supersample <= 64:
+        raise SettingsError(f"lightmap supersample={supersample!r} must be an integer in [1, 64], e.g. 2")
+    uv_all = solution.vertex_uv
     if uv_all is None:
         return {}
-    faces, shape_of = a["faces"], a["triangle_shape"]
+    faces, shape_of = solution.faces, solution.triangle_shape
     tri_uv = uv_all[faces]                                              # (T, 3, 2)
     has_uv = np.all(np.isfinite(tri_uv), axis=(1, 2))
     if quantity not in ("radiosity", "error"):
         raise SettingsError(f"lightmap quantity={quantity!r} must be 'radiosity' or 'error'")
     shading = Shading(solution)
-    b_leaf = np.asarray(a[f"leaf_{quantity}"], np.float64)
+    b_leaf = np.asarray(solution.leaf_radiosity if quantity == "radiosity" else solution.leaf_error, np.float64)
     b_tri = solution.triangle_radiosity if quantity == "radiosity" else solution.triangle_error
     maps = {}
-    for s, sid in enumerate(solution.shape_ids):   # one vectorised bake per shape
+    baked = [s for s in range(len(solution.shape_ids)) if np.any((shape_of == s) & has_uv)]
+    for s in tqdm(baked, desc=f"lightmaps ({quantity})", unit="shape", disable=quiet, leave=False):
+        sid = solution.shape_ids[s]                 # one vectorised bake per shape
         tris = np.flatnonzero((shape_of == s) & has_uv)
-        if len(tris) == 0:
-            continue
         maps[sid] = _bake_shape(solution, shading, s, tris, tri_uv[tris], b_leaf, b_tri,
                                 resolution, supersample, dilate, detail=quantity == "radiosity")
     return maps
@@ -326,10 +362,8 @@ def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate, 
     normal = solution.scene.tri_normal[tri]
     value = b_tri[tri].copy()
     if len(p):
-        f = lambda x: mi.Float(np.ascontiguousarray(x, np.float32))  # noqa: E731
         leaf, leaf_uv, found = shading.locate(
-            mi.Point3f(f(p[:, 0]), f(p[:, 1]), f(p[:, 2])), mi.Vector3f(f(normal[:, 0]), f(normal[:, 1]), f(normal[:, 2])),
-            dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), s, np.uint32)), mi.Bool(np.ones(len(p), bool)))
+            to_point3(p), to_vector3(normal), dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), s, np.uint32)), mi.Bool(np.ones(len(p), bool)))
         leaf, found = np.asarray(leaf.numpy(), np.int64), np.asarray(found.numpy(), bool)
         value[found] = b_leaf[leaf[found]]
         if detail and len(solution.detail_leaves):     # shadow-texture detail inside the leaf
@@ -342,10 +376,10 @@ def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate, 
     hits = np.bincount(texel, minlength=res * res).astype(np.float64)
     image = (total / np.maximum(hits, 1)[:, None]).reshape(res, res, channels)
     filled = (hits > 0).reshape(res, res)
-    return _dilate(image, filled, dilate).astype(np.float32)
+    return dilate_islands(image, filled, dilate).astype(np.float32)
 
 
-def _dilate(image: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
+def dilate_islands(image: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
     """Fill empty texels with the mean of their filled 8-neighbours, ``passes`` rings deep."""
     image = image.copy()
     filled = filled.copy()
@@ -368,66 +402,47 @@ def _dilate(image: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
     return image
 
 
-def _safe_name(shape_id: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", shape_id) or "shape"
+def lightmap_names(shape_ids) -> dict:
+    """A file stem per shape id, unique even where ids differ only in characters that are not
+    safe in file names or in letter case (``wall 1`` and ``wall_1`` -> ``wall_1``, ``wall_1~2``):
+    {shape_id: stem}, in the order given."""
+    stems, taken = {}, set()
+    for sid in shape_ids:
+        base = re.sub(r"[^A-Za-z0-9._-]+", "_", sid).strip(".") or "shape"
+        stem, k = base, 1
+        while stem.lower() in taken:
+            k += 1
+            stem = f"{base}~{k}"
+        taken.add(stem.lower())
+        stems[sid] = stem
+    return stems
 
 
-def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int = 2, dilate: int = 8,
-                    error: bool = False) -> list:
-    """Bake lightmaps and write ``<folder>/<shape_id>.exr`` (R, G, B float, W/m^2) per shape with UVs;
-    with ``error``, also ``<shape_id>.error.exr``, the estimated error map (W/m^2)."""
+#: File in a lightmap folder that maps shape ids to lightmap files.
+LIGHTMAP_INDEX = "lightmaps.csv"
+
+
+def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int | None = None, dilate: int = 8,
+                    error: bool = False, quiet: bool = True) -> list:
+    """Bake lightmaps and write ``<folder>/<stem>.exr`` (R, G, B float, W/m^2) per shape with UVs,
+    and ``<folder>/lightmaps.csv`` mapping each shape id to its file (stems are unique, see
+    ``lightmap_names``); with ``error``, also ``<stem>.error.exr``, the estimated error map (W/m^2).
+    Returns the paths written."""
     folder = Path(folder)
     if not folder.is_dir():
         raise OutputError(f"lightmap folder '{folder}' does not exist; create it first")
-    maps = bake_lightmaps(solution, resolution=resolution, supersample=supersample, dilate=dilate)
+    maps = bake_lightmaps(solution, resolution=resolution, supersample=supersample, dilate=dilate, quiet=quiet)
     if not maps:
         raise OutputError("no shape in the scene has texture coordinates (UVs); there is nothing to bake")
-    blobs = {f"{_safe_name(sid)}.exr": exr_bytes({"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})
-             for sid, img in maps.items()}
+    stems = lightmap_names(solution.shape_ids)
+    rgb = lambda img: {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}  # noqa: E731
+    blobs = {f"{stems[sid]}.exr": exr_bytes(rgb(img)) for sid, img in maps.items()}
+    index = {"shape_id": list(maps), "file": [f"{stems[sid]}.exr" for sid in maps]}
     if error:
         errors = bake_lightmaps(solution, resolution=resolution, supersample=supersample, dilate=dilate,
-                                quantity="error")
-        blobs.update({f"{_safe_name(sid)}.error.exr": exr_bytes({"R": img[..., 0], "G": img[..., 1],
-                                                                 "B": img[..., 2]})
-                      for sid, img in errors.items()})
-    written = []
-    for name, blob in blobs.items():  # one file per shape (and map)
-        path = folder / name
-        atomic_write(path, lambda handle, blob=blob: handle.write(blob))
-        written.append(path)
-    return written
-
-
-# ------------------------------------------------------------------------------------------
-# Image files
-# ------------------------------------------------------------------------------------------
-
-def exr_bytes(channels: dict) -> bytes:
-    """An OpenEXR file (float32 channels, ZIP compression) as bytes; channels: name -> (H, W)."""
-    import OpenEXR
-
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    data = {name: np.ascontiguousarray(values, dtype=np.float32) for name, values in channels.items()}
-    with tempfile.TemporaryDirectory() as tmp:
-        name = os.path.join(tmp, "image.exr")
-        with OpenEXR.File(header, data) as exr:
-            exr.write(name)
-        with open(name, "rb") as handle:
-            return handle.read()
-
-
-def read_exr(path) -> dict:
-    """Channels of an OpenEXR file: name -> (H, W) float32."""
-    import OpenEXR
-
-    with OpenEXR.File(str(path), separate_channels=True) as exr:
-        return {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
-
-
-def png_bytes(rgb8: np.ndarray) -> bytes:
-    """An 8-bit RGB PNG as bytes."""
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb8, dtype=np.uint8), "RGB").save(buffer, format="PNG")
-    return buffer.getvalue()
+                                quantity="error", quiet=quiet)
+        blobs.update({f"{stems[sid]}.error.exr": exr_bytes(rgb(img)) for sid, img in errors.items()})
+        index["error_file"] = [f"{stems[sid]}.error.exr" for sid in maps]
+    blobs[LIGHTMAP_INDEX] = _csv_bytes({k: np.asarray(v, dtype=str) for k, v in index.items()})
+    return [atomic_write(folder / name, lambda handle, blob=blob: handle.write(blob))  # one file per map
+            for name, blob in blobs.items()]

@@ -1,31 +1,9 @@
 """Mitsuba integrator plugin ``radiosity``: render a scene's radiosity solution with ``mi.render``.
 
-.. pluginparameters::
+{table}
 
- * - tolerance
-   - |float|
-   - Target relative error of the radiosity solution, in (0, 1). (Default: 0.03)
- * - samples_per_link
-   - |int|
-   - Shadow rays and receiver quadrature points per link of the solver, >= 1. (Default: 16)
- * - seed
-   - |int|
-   - Seed of the solver and of the final gather; same seed, same image. (Default: 0)
- * - final_gather
-   - |bool|
-   - One bounce of gathering from the solution at each pixel's hit point (crisp contact
-     shadows; costs pixels x elements x gather_rays shadow rays). (Default: false)
- * - smooth
-   - |bool|
-   - Interpolate radiosity between element corners (true) or show flat elements (false).
-     (Default: true)
- * - gather_rays
-   - |int|
-   - Shadow rays per element in the final gather, >= 1. (Default: 4)
- * - shadow_textures
-   - |bool|
-   - Solve with convolution shadow textures on links from lights that would otherwise split
-     their receiver; the pixels show the shadow inside the coarse element. (Default: false)
+Solver parameters are the fields of ``mirad.Settings`` (mirad/settings.py); the table is built
+from ``mirad.options.PLUGIN``. The plugin solves quietly unless ``quiet`` is false.
 
 Also accepted, as for every Mitsuba sampling integrator: ``hide_emitters``, ``block_size``,
 ``samples_per_pass``, ``timeout``. Any other property is an error naming it.
@@ -56,154 +34,90 @@ from __future__ import annotations
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import SettingsError
+from .options import PLUGIN, check_render, plugin_table
+from .scene import load_scene
+from .settings import make_settings
+from .shading import Shading, view_class
+from .solver import solve_problem
 
-import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+__doc__ = __doc__.replace("{table}", plugin_table())
 _DOC = __doc__
-
-
-#: Plugin parameters: name -> (type, default). Solver defaults come from mirad.Settings.
-def _parameters() -> dict:
-    from .settings import Settings
-
-    return {
-        "tolerance": (float, Settings.tolerance),
-        "samples_per_link": (int, Settings.samples_per_link),
-        "seed": (int, Settings.seed),
-        "final_gather": (bool, False),
-        "smooth": (bool, True),
-        "gather_rays": (int, 4),
-        "shadow_textures": (bool, Settings.shadow_textures),
-    }
-
 
 #: Properties that Mitsuba's SamplingIntegrator base class reads itself.
 _BASE_PROPERTIES = ("hide_emitters", "block_size", "samples_per_pass", "timeout")
-#: At most this many scene objects keep a cached solution per integrator.
-_CACHE_SIZE = 4
+#: Parameters that are display options, not solver settings.
+_DISPLAY = ("smooth", "final_gather", "gather_rays")
 
 _classes: dict = {}
 
 
-def _read(props, name: str, kind, default):
+def _read(props, option):
+    """The value of one plugin parameter (its default when absent), type-checked."""
+    name, kind = option.name, option.kind
     if not props.has_property(name):
-        return default
+        return option.default
     value = props[name]
     if kind is bool:
         if not isinstance(value, bool):
             raise SettingsError(f"radiosity integrator: parameter '{name}' must be a boolean "
                                 f"(<boolean name=\"{name}\" value=\"true\"/>), got {value!r}")
     elif kind is int:
-        if isinstance(value, bool) or not float(value).is_integer():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not float(value).is_integer():
             raise SettingsError(f"radiosity integrator: parameter '{name}' must be an integer "
                                 f"(<integer name=\"{name}\" .../>), got {value!r}")
         value = int(value)
-    else:
+    elif kind is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SettingsError(f"radiosity integrator: parameter '{name}' must be a number, got {value!r}")
         value = float(value)
+    elif not isinstance(value, str):
+        raise SettingsError(f"radiosity integrator: parameter '{name}' must be a string "
+                            f"(<string name=\"{name}\" .../>), got {value!r}")
     return value
 
 
 def _make_class():
     """The integrator class for the current Mitsuba variant (its base class is variant-specific)."""
 
-    class RadiosityIntegrator(mi.SamplingIntegrator):
+    class RadiosityIntegrator(view_class()):
         def __init__(self, props=None):
             props = mi.Properties("radiosity") if props is None else props
-            params = _parameters()
-            unknown = [k for k in props.keys() if k not in params and k not in _BASE_PROPERTIES]
+            names = [o.name for o in PLUGIN]
+            unknown = [k for k in props.keys() if k not in names and k not in _BASE_PROPERTIES]
             if unknown:
                 raise SettingsError(
                     f"radiosity integrator: unknown parameter '{unknown[0]}'; valid parameters are "
-                    f"{', '.join(params)}")
+                    f"{', '.join(names)}")
             super().__init__(props)
-            values = {name: _read(props, name, kind, default) for name, (kind, default) in params.items()}
-            for name in params:
+            values = {o.name: _read(props, o) for o in PLUGIN}
+            for name in names:
                 if props.has_property(name):
                     props.mark_queried(name)
-            from .settings import make_settings
-
-            try:  # validate the solver options now, not at the first render
-                make_settings(tolerance=values["tolerance"], samples_per_link=values["samples_per_link"],
-                              seed=values["seed"])
+            solve = {k: v for k, v in values.items() if k not in _DISPLAY}
+            if not props.has_property("quiet"):
+                solve["quiet"] = True
+            try:  # validate every option now, not at the first render
+                self.settings = make_settings(**solve)
+                check_render(**{k: values[k] for k in _DISPLAY})
             except SettingsError as exc:
                 raise SettingsError(f"radiosity integrator: {exc}") from None
-            if values["gather_rays"] < 1:
-                raise SettingsError(f"radiosity integrator: gather_rays={values['gather_rays']} must be >= 1")
-            self.tolerance = values["tolerance"]
-            self.samples_per_link = values["samples_per_link"]
-            self.seed = values["seed"]
-            self.final_gather = values["final_gather"]
-            self.smooth = values["smooth"]
-            self.gather_rays = values["gather_rays"]
-            self.shadow_textures = values["shadow_textures"]
-            self._cache = {}  # id(mi.Scene) -> (mi.Scene, Shading)
-
-        # --- the solution of a scene -----------------------------------------------------
-        def set_solution(self, scene, solution) -> None:
-            """Use ``solution`` for ``scene`` (an mi.Scene) instead of solving it."""
-            from .display import Shading
-
-            if solution.scene is None or solution.scene.mi_scene is not scene:
-                from .scene import load_scene
-
-                solution.attach(load_scene(scene))
-            self._remember(scene, Shading(solution))
-
-        def solution(self, scene):
-            """The solution used for ``scene`` (solved on first use, then cached)."""
-            return self._shading(scene).solution
-
-        def _remember(self, scene, shading) -> None:
-            self._cache[id(scene)] = (scene, shading)
-            while len(self._cache) > _CACHE_SIZE:
-                self._cache.pop(next(iter(self._cache)))
+            for o in PLUGIN:  # every parameter readable as an attribute (integrator.tolerance, ...)
+                setattr(self, o.name, getattr(self.settings, o.name) if o.name not in _DISPLAY else values[o.name])
 
         def _shading(self, scene):
-            entry = self._cache.get(id(scene))
-            if entry is not None and entry[0] is scene:
-                return entry[1]
-            from . import solve
-            from .display import Shading
-            from .scene import load_scene
-
-            loaded = load_scene(scene)
-            sol = solve(loaded, tolerance=self.tolerance, samples_per_link=self.samples_per_link,
-                        seed=self.seed, shadow_textures=self.shadow_textures, variant=mi.variant())
-            shading = Shading(sol)
-            self._remember(scene, shading)
+            """The shading of ``scene``: the one set or solved before, else solve it now."""
+            shading = self._cached(scene)
+            if shading is None:
+                loaded = load_scene(scene)
+                shading = Shading(solve_problem(loaded, self.settings.replace(variant=mi.variant())))
+                self._remember(scene, shading)
             return shading
 
-        # --- Mitsuba interface -------------------------------------------------------------
-        def sample(self, scene, sampler, ray, medium=None, active=True):
-            shading = self._shading(scene)
-            active = mi.Bool(active)
-            # ---------------- camera rays: Mitsuba's own geometry ----------------
-            si = scene.ray_intersect(ray, active)
-            valid = active & si.is_valid()
-            # ---------------- the leaf under each hit point ----------------------
-            color, leaf, found = shading.radiance(si, ray.d, valid, smooth=self.smooth)
-            if self.final_gather:
-                gathered = shading.gathered_radiance(si, ray.d, leaf, found, valid,
-                                                     rays=self.gather_rays, seed=self.seed)
-                color = dr.select(found, gathered, color)
-            color = dr.select(valid, color, 0.0)
-            # ---------------- rays that leave the scene --------------------------
-            env = scene.environment()
-            if env is not None and not self.hide_emitters:
-                color = dr.select(valid, color, env.eval(si, active & ~valid))
-            return color, valid, []
-
-        def aov_names(self):
-            return []
-
         def to_string(self):
-            return (f"RadiosityIntegrator[tolerance={self.tolerance}, samples_per_link="
-                    f"{self.samples_per_link}, seed={self.seed}, final_gather={self.final_gather}, "
-                    f"smooth={self.smooth}, gather_rays={self.gather_rays}, "
-                    f"shadow_textures={self.shadow_textures}]")
+            shown = ", ".join(f"{o.name}={getattr(self, o.name)}" for o in PLUGIN)
+            return f"RadiosityIntegrator[{shown}]"
 
     RadiosityIntegrator.__doc__ = _DOC
     return RadiosityIntegrator

@@ -15,7 +15,8 @@ Every estimate comes with its standard error (sample standard deviation / sqrt(n
 mistakes the reference's noise for solver error. Paths are traced in Dr.Jit launches of at most
 ``batch`` lanes; the sampler seed is opaque, so every launch reuses one compiled kernel.
 
-References are cached on disk (``cached_reference``), keyed by the scene fingerprint and every
+References are cached on disk (``cached_reference``, in ``default_cache_dir()``: the platform's
+cache folder, or ``$MIRAD_CACHE``), keyed by the scene fingerprint and every
 sampling setting; the fingerprint is also stored inside the file and checked on load, so a cache
 from another scene is never reused. Files are written atomically.
 
@@ -38,9 +39,12 @@ import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import SceneError, SettingsError
+from .arrays import to_vector3
+from .files import atomic_write
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
 __all__ = ["Reference", "ReferenceImage", "triangle_reference", "cached_reference", "reference_image",
            "camera_rays", "DEFAULT_CACHE"]
@@ -49,8 +53,10 @@ __all__ = ["Reference", "ReferenceImage", "triangle_reference", "cached_referenc
 BATCH = 1 << 20
 #: Ray origins are lifted this fraction of the scene diagonal off the surface.
 OFFSET = 1e-4
-#: Default cache folder (relative to the working directory; git-ignored in the repository).
-DEFAULT_CACHE = ".mirad-cache"
+#: ``cache_dir`` value meaning the default cache folder (see ``default_cache_dir``).
+DEFAULT_CACHE = "default"
+#: Fewest paths a triangle gets when paths are allocated by area.
+MIN_AREA_SAMPLES = 16
 #: Bumped whenever the estimator changes, so old caches are recomputed.
 CACHE_VERSION = 2
 METHODS = ("outgoing", "irradiance")
@@ -102,8 +108,6 @@ class Reference:
 
     def save(self, path) -> Path:
         """Write as .npz (atomically)."""
-        from .solution import atomic_write
-
         arrays = {"radiosity": self.radiosity, "stderr": self.stderr}
         if self.triangles is not None:
             arrays["triangles"] = self.triangles
@@ -154,11 +158,6 @@ def _sampler(seed: int, batch: int, salt: int, lanes: int):
     return sampler
 
 
-def _vec(a: np.ndarray):
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    return mi.Vector3f(mi.Float(a[:, 0]), mi.Float(a[:, 1]), mi.Float(a[:, 2]))
-
-
 def _colour(spectrum, count: int) -> np.ndarray:
     arr = np.array(spectrum.numpy(), dtype=np.float64)
     arr = arr.T if arr.ndim == 2 and arr.shape[0] == 3 else arr.reshape(-1, 3)
@@ -181,21 +180,37 @@ def _check_count(name: str, value: int) -> int:
 # Per-triangle reference
 # ------------------------------------------------------------------------------------------
 
+def sample_counts(area: np.ndarray, mean: int, allocation: str) -> np.ndarray:
+    """(K,) paths per triangle: ``mean`` each ("uniform"), or in proportion to area with the same
+    total and at least ``MIN_AREA_SAMPLES`` each ("area": the area-weighted error of the
+    reference then gets its best standard error for the paths spent)."""
+    area = np.asarray(area, np.float64)
+    if allocation == "uniform" or not len(area):
+        return np.full(len(area), int(mean), np.int64)
+    if allocation != "area":
+        raise SettingsError(f"allocation={allocation!r}: choose 'uniform' or 'area'")
+    share = area / max(area.sum(), 1e-300) * int(mean) * len(area)
+    return np.maximum(np.round(share).astype(np.int64), min(MIN_AREA_SAMPLES, int(mean)))
+
+
 def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                        triangles: np.ndarray | None = None, method: str = "outgoing",
-                       batch: int = BATCH) -> Reference:
+                       batch: int = BATCH, allocation: str = "uniform", quiet: bool = True) -> Reference:
     """Path-traced front-side radiosity of every (or the given) input triangle.
 
     Parameters
     ----------
     scene : mirad.Scene
-    samples_per_triangle : paths per triangle (all triangles get the same number)
+    samples_per_triangle : paths per triangle (the mean number with ``allocation="area"``)
     seed : random seed; different seeds give independent estimates
     max_depth : Mitsuba ``path`` depth (-1: unlimited, with Russian roulette: unbiased)
     triangles : (K,) int, optional subset of input triangles
     method : "outgoing" (B = pi L_o, emitter sampling at the point) or "irradiance"
              (cosine-weighted L_in, B = E + rho H)
     batch : most paths per Dr.Jit launch
+    allocation : "uniform" (every triangle the same paths) or "area" (in proportion to area,
+                 see ``sample_counts``)
+    quiet : no progress bar
 
     Returns
     -------
@@ -217,16 +232,19 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     total = np.zeros((k, 3))
     total_sq = np.zeros((k, 3))
     offset = OFFSET * scene.diagonal
-    count = k * n
+    counts = sample_counts(scene.tri_area[tris], n, allocation)
+    ends = np.cumsum(counts)
+    count = int(ends[-1]) if k else 0
+    bar = tqdm(total=count, desc="reference paths", unit="path", unit_scale=True, disable=quiet, leave=False)
     for index, start in enumerate(range(0, count, batch)):
         stop = min(count, start + batch)
         lanes = stop - start
-        local = np.arange(start, stop, dtype=np.int64) // n          # triangle row of each lane
+        local = np.searchsorted(ends, np.arange(start, stop, dtype=np.int64), side="right")  # triangle of each lane
         first, last = int(local[0]), int(local[-1]) + 1
         # --- upload the triangles this launch touches, gather per lane inside Dr.Jit ----------
         idx = mi.UInt32((local - first).astype(np.uint32))
-        v0, v1, v2 = (dr.gather(mi.Vector3f, _vec(verts[first:last, c]), idx) for c in range(3))
-        nrm = dr.gather(mi.Vector3f, _vec(normal[first:last]), idx)
+        v0, v1, v2 = (dr.gather(mi.Vector3f, to_vector3(verts[first:last, c]), idx) for c in range(3))
+        nrm = dr.gather(mi.Vector3f, to_vector3(normal[first:last]), idx)
         sampler = _sampler(seed, index, 0x51, lanes)
         u = sampler.next_2d()
         su = dr.sqrt(u.x)
@@ -246,22 +264,35 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
         for c in range(3):
             total[:, c] += np.bincount(local, weights=sample[:, c], minlength=k)
             total_sq[:, c] += np.bincount(local, weights=sample[:, c] ** 2, minlength=k)
-    mean = total / n
-    var = np.maximum(total_sq / n - mean * mean, 0.0) * (n / max(n - 1, 1))
-    stderr = np.sqrt(var / n)
+        bar.update(lanes)
+    bar.close()
+    m = np.maximum(counts, 1)[:, None].astype(np.float64)
+    mean = total / m
+    var = np.maximum(total_sq / m - mean * mean, 0.0) * (m / np.maximum(m - 1, 1))
+    stderr = np.sqrt(var / m)
     return Reference(mean, stderr, n, time.perf_counter() - t0, count, method=method, seed=int(seed),
                      fingerprint=scene.fingerprint, triangles=None if triangles is None else tris)
+
+
+def default_cache_dir() -> Path:
+    """The reference cache folder: ``$MIRAD_CACHE`` if set, else the platform's user cache folder
+    for mirad (``~/.cache/mirad`` on Linux, via platformdirs)."""
+    import platformdirs
+
+    return Path(os.environ.get("MIRAD_CACHE") or platformdirs.user_cache_dir("mirad"))
 
 
 def cache_path(scene, *, cache_dir=DEFAULT_CACHE, kind: str = "triangles", **settings) -> Path:
     """The cache file of a reference: scene fingerprint + a hash of every setting."""
     text = json.dumps({"version": CACHE_VERSION, "kind": kind, **settings}, sort_keys=True, default=str)
     key = hashlib.sha256(text.encode()).hexdigest()[:12]
-    return Path(cache_dir) / f"{kind}-{scene.fingerprint}-{key}.npz"
+    folder = default_cache_dir() if cache_dir == DEFAULT_CACHE else Path(cache_dir)
+    return folder / f"{kind}-{scene.fingerprint}-{key}.npz"
 
 
 def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: int = 1024, seed: int = 0,
-                     max_depth: int = -1, method: str = "outgoing", triangles=None) -> Reference:
+                     max_depth: int = -1, method: str = "outgoing", triangles=None, allocation: str = "uniform",
+                     quiet: bool = True) -> Reference:
     """``triangle_reference`` through an on-disk cache (``cache_dir=None``: no cache).
 
     A cached file is reused only when its stored fingerprint, method, seed and sample count all
@@ -270,11 +301,13 @@ def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: in
     """
     settings = {"samples_per_triangle": int(samples_per_triangle), "seed": int(seed),
                 "max_depth": int(max_depth), "method": method,
+                **({} if allocation == "uniform" else {"allocation": allocation}),
                 "triangles": None if triangles is None else hashlib.sha256(
                     np.asarray(triangles, np.int64).tobytes()).hexdigest()[:12]}
     if cache_dir is None:
         return triangle_reference(scene, samples_per_triangle=samples_per_triangle, seed=seed,
-                                  max_depth=max_depth, method=method, triangles=triangles)
+                                  max_depth=max_depth, method=method, triangles=triangles,
+                                  allocation=allocation, quiet=quiet)
     path = cache_path(scene, cache_dir=cache_dir, **settings)
     if path.exists():
         try:
@@ -286,7 +319,8 @@ def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: in
                 and len(ref.radiosity) == (scene.triangle_count if triangles is None else len(triangles))):
             return ref
     ref = triangle_reference(scene, samples_per_triangle=samples_per_triangle, seed=seed,
-                             max_depth=max_depth, method=method, triangles=triangles)
+                             max_depth=max_depth, method=method, triangles=triangles, allocation=allocation,
+                             quiet=quiet)
     os.makedirs(path.parent, exist_ok=True)
     ref.save(path)
     return ref
@@ -379,8 +413,6 @@ def cached_image(scene, *, cache_dir=DEFAULT_CACHE, spp: int = 64, seed: int = 0
         except Exception:
             pass
     img = reference_image(scene, spp=spp, seed=seed, max_depth=max_depth)
-    from .solution import atomic_write
-
     meta = np.frombuffer(json.dumps({"fingerprint": scene.fingerprint, "settings": settings,
                                      "seconds": img.seconds}).encode(), np.uint8)
     os.makedirs(path.parent, exist_ok=True)

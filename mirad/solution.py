@@ -3,40 +3,47 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .arrays import LEAF_CORNER_UV, group_mean, group_sum, scene_diagonal
 from .errors import OutputError, SolutionMismatch
+from .files import atomic_write
 
 #: Format version of saved .npz solutions.
 FORMAT = 1
 
 
-#: (u, v) of a leaf's corners v0, v1, v2 in its parametrisation y = v0 + u (v1 - v0) + v (v2 - v0).
-LEAF_CORNER_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+#: Arrays every solution holds (keys of the saved .npz).
+_REQUIRED = ("leaf_verts", "leaf_patch", "leaf_normal", "leaf_radiosity", "leaf_irradiance", "leaf_error",
+             "patch_tri", "patch_side", "curve_center", "curve_axis", "curve_radius", "vertices", "faces",
+             "triangle_area", "triangle_shape", "triangle_rho", "triangle_emission")
+
 
 
 class Solution:
     """Radiosity solution of one scene (units: W/m^2; radiance = radiosity / pi).
 
+    Built from arrays (:meth:`from_arrays`) or loaded from a file (:func:`load_solution`); every
+    array is a read-only view through a documented property. Sizes: L leaf elements (the finest
+    elements of the refined hierarchy, front and back sides), P patches (input triangles and
+    the back sides of two-sided ones), T input triangles, V input vertices, S shapes, C channels
+    (1 for a grey scene, else 3).
+
     Attributes
     ----------
     shape_ids : list[str]             Mitsuba ids, in ``mi.Scene.shapes()`` order
-    triangle_radiosity : (T, C) float front-side radiosity per input triangle
-    triangle_irradiance : (T, C) float front-side irradiance per input triangle
-    back_radiosity : (T, C) float     back-side radiosity (zero where one-sided)
-    triangle_area : (T,) float        m^2
-    triangle_shape : (T,) int         index into shape_ids
-    vertex_radiosity : (V, C) float   smooth per-vertex radiosity (front side), with the
-                                      shadow-texture detail at the vertex where a leaf has one
     stats : dict                      elements, links, rays, seconds, estimated_error, features, variant
+    fingerprint : str                 fingerprint of the scene it was solved for
+    scene : mirad Scene or None       the scene, once attached
     """
 
     def __init__(self, *, arrays: dict, stats: dict, shape_ids: list, fingerprint: str, scene=None):
-        self._a = arrays
+        missing = [k for k in _REQUIRED if k not in arrays]
+        if missing:
+            raise SolutionMismatch(f"solution arrays lack {', '.join(missing)}")
+        self._arrays = dict(arrays)
         self.stats = stats
         self.shape_ids = list(shape_ids)
         self.fingerprint = fingerprint
@@ -44,19 +51,35 @@ class Solution:
 
     # --- construction ---------------------------------------------------------------------
     @classmethod
-    def from_solve(cls, scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=None) -> "Solution":
-        e = prob.elements
+    def from_arrays(cls, scene, *, leaf_vertices, leaf_patch, leaf_normal, leaf_radiosity, leaf_irradiance,
+                    leaf_error, stats: dict, detail_leaves=None, leaf_detail=None) -> "Solution":
+        """A solution of ``scene`` (a mirad Scene) from per-leaf arrays.
+
+        Parameters
+        ----------
+        leaf_vertices : (L, 3, 3) float, m        corners of the leaf elements
+        leaf_patch : (L,) int                     patch of each leaf (index into ``scene.patch_tri``)
+        leaf_normal : (L, 3) float                unit normal of each leaf's side
+        leaf_radiosity, leaf_irradiance, leaf_error : (L, C) or (L, 1) float, W/m^2
+            radiosity, irradiance and estimated absolute error of the radiosity per leaf
+            (one channel is widened to the scene's C)
+        stats : dict                              solve statistics (see ``Solution.stats``)
+        detail_leaves : (D,) int or None          leaves with shadow-texture detail
+        leaf_detail : (D, R, R, C) or (D, R, R, 1) float or None, W/m^2   their detail textures
+        """
         channels = scene.channels
-        widen = (lambda x: np.repeat(x, channels, axis=1)) if b_leaf.shape[1] == 1 else (lambda x: x)
-        b_leaf, h_leaf, err_leaf = widen(b_leaf), widen(h_leaf), widen(err_leaf)
-        patch = e.patch[leaves]
+
+        def widen(x, axis=1):
+            x = np.asarray(x)
+            return np.repeat(x, channels, axis=axis) if x.shape[axis] == 1 else x
+
         arrays = {
-            "leaf_verts": e.verts[leaves].astype(np.float64),
-            "leaf_patch": patch.astype(np.int32),
-            "leaf_normal": prob.patch_normal[patch],
-            "leaf_radiosity": b_leaf,
-            "leaf_irradiance": h_leaf,
-            "leaf_error": err_leaf,
+            "leaf_verts": np.asarray(leaf_vertices, np.float64),
+            "leaf_patch": np.asarray(leaf_patch).astype(np.int32),
+            "leaf_normal": np.asarray(leaf_normal),
+            "leaf_radiosity": widen(leaf_radiosity),
+            "leaf_irradiance": widen(leaf_irradiance),
+            "leaf_error": widen(leaf_error),
             "patch_tri": scene.patch_tri.astype(np.int64),
             "patch_side": scene.patch_side.astype(np.int8),
             "curve_center": scene.curve_center, "curve_axis": scene.curve_axis,
@@ -68,33 +91,91 @@ class Solution:
         }
         if scene.vertex_uv is not None:
             arrays["vertex_uv"] = scene.vertex_uv
-        if detail is not None and len(detail[0]):
-            rows, tex = detail
-            arrays["detail_leaf"] = np.asarray(rows, np.int32)
-            arrays["leaf_detail"] = np.repeat(tex, channels, axis=3) if tex.shape[3] == 1 else tex
+        if detail_leaves is not None and len(detail_leaves):
+            arrays["detail_leaf"] = np.asarray(detail_leaves, np.int32)
+            arrays["leaf_detail"] = widen(leaf_detail, axis=3)
         return cls(arrays=arrays, stats=stats, shape_ids=scene.shape_ids,
                    fingerprint=scene.fingerprint, scene=scene)
 
+    @classmethod
+    def from_solve(cls, scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=None) -> "Solution":
+        """Compatibility for the solver cores: reads ``prob.elements.verts/patch`` and
+        ``prob.patch_normal``; prefer :meth:`from_arrays`."""
+        e = prob.elements
+        patch = e.patch[leaves]
+        rows, tex = detail if detail is not None else (None, None)
+        return cls.from_arrays(scene, leaf_vertices=e.verts[leaves], leaf_patch=patch,
+                               leaf_normal=prob.patch_normal[patch], leaf_radiosity=b_leaf,
+                               leaf_irradiance=h_leaf, leaf_error=err_leaf, stats=stats,
+                               detail_leaves=rows, leaf_detail=tex)
+
     # --- per-leaf data -----------------------------------------------------------------------
     @property
-    def leaf_radiosity(self) -> np.ndarray:
-        """(L, C) radiosity of the finest elements."""
-        return self._a["leaf_radiosity"]
+    def channels(self) -> int:
+        """Number of colour channels C (1 for a grey scene, 3 for RGB)."""
+        return self._arrays["leaf_radiosity"].shape[1]
 
     @property
     def leaf_vertices(self) -> np.ndarray:
-        """(L, 3, 3) corners of the finest elements."""
-        return self._a["leaf_verts"]
+        """(L, 3, 3) float, m: corners v0, v1, v2 of the leaf elements."""
+        return self._arrays["leaf_verts"]
+
+    @property
+    def leaf_patch(self) -> np.ndarray:
+        """(L,) int: patch of each leaf (index into ``patch_triangle``/``patch_side``)."""
+        return self._arrays["leaf_patch"]
+
+    @property
+    def leaf_normal(self) -> np.ndarray:
+        """(L, 3) float: unit normal of the side each leaf belongs to."""
+        return self._arrays["leaf_normal"]
+
+    @property
+    def leaf_radiosity(self) -> np.ndarray:
+        """(L, C) float, W/m^2: radiosity of the leaf elements."""
+        return self._arrays["leaf_radiosity"]
+
+    @property
+    def leaf_irradiance(self) -> np.ndarray:
+        """(L, C) float, W/m^2: irradiance of the leaf elements."""
+        return self._arrays["leaf_irradiance"]
+
+    @property
+    def leaf_error(self) -> np.ndarray:
+        """(L, C) float, W/m^2: estimated absolute error of ``leaf_radiosity``."""
+        return self._arrays["leaf_error"]
 
     @property
     def leaf_area(self) -> np.ndarray:
-        v = self._a["leaf_verts"]
+        """(L,) float, m^2: area of the leaf elements."""
+        v = self._arrays["leaf_verts"]
         return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
     @property
+    def leaf_triangle(self) -> np.ndarray:
+        """(L,) int: input triangle each leaf lies on."""
+        return self._arrays["patch_tri"][self._arrays["leaf_patch"]]
+
+    @property
+    def leaf_side(self) -> np.ndarray:
+        """(L,) int8: 0 front side, 1 back side (two-sided BSDFs)."""
+        return self._arrays["patch_side"][self._arrays["leaf_patch"]]
+
+    @property
+    def leaf_shape(self) -> np.ndarray:
+        """(L,) int: shape of each leaf (index into ``shape_ids``)."""
+        return self._arrays["triangle_shape"][self.leaf_triangle]
+
+    @property
     def detail_leaves(self) -> np.ndarray:
-        """(T,) rows of the leaves that carry shadow-texture detail (empty without textures)."""
-        return self._a.get("detail_leaf", np.zeros(0, np.int32))
+        """(D,) int: the leaves that carry shadow-texture detail (empty without textures)."""
+        return self._arrays.get("detail_leaf", np.zeros(0, np.int32))
+
+    @property
+    def leaf_detail(self) -> np.ndarray:
+        """(D, R, R, C) float, W/m^2: shadow-texture detail of ``detail_leaves`` (texel (i, j) at
+        leaf parameters u = (i + 0.5) / R, v = (j + 0.5) / R); (0, 0, 0, C) without textures."""
+        return self._arrays.get("leaf_detail", np.zeros((0, 0, 0, self.channels)))
 
     def detail_at(self, leaf, uv) -> np.ndarray:
         """(P, C) shadow-texture detail of radiosity, W/m^2, at points with parameters uv (P, 2)
@@ -102,116 +183,167 @@ class Solution:
         zero on leaves without texture links. Its mean over each leaf is zero: the leaf's
         radiosity already holds the texture links' mean transfer."""
         leaf = np.asarray(leaf, np.int64)
-        c = self._a["leaf_radiosity"].shape[1]
-        out = np.zeros((len(leaf), c))
+        out = np.zeros((len(leaf), self.channels))
         rows = self.detail_leaves
         if not len(rows) or not len(leaf):
             return out
-        slot = np.full(len(self._a["leaf_radiosity"]), -1, np.int64)
+        slot = np.full(len(self.leaf_radiosity), -1, np.int64)
         slot[rows] = np.arange(len(rows))
         k = slot[leaf]
         has = k >= 0
         if has.any():
             from .shadows import bilinear
 
-            out[has] = bilinear(self._a["leaf_detail"], k[has], np.asarray(uv)[has])
+            out[has] = bilinear(self._arrays["leaf_detail"], k[has], np.asarray(uv)[has])
         return out
 
     def radiosity_at(self, leaf, uv) -> np.ndarray:
         """(P, C) radiosity at points (leaf (P,), uv (P, 2)): the leaf's value plus its shadow
         detail (``detail_at``), W/m^2."""
-        return self._a["leaf_radiosity"][np.asarray(leaf, np.int64)] + self.detail_at(leaf, uv)
+        return self.leaf_radiosity[np.asarray(leaf, np.int64)] + self.detail_at(leaf, uv)
+
+    # --- patches and input mesh ---------------------------------------------------------------
+    @property
+    def patch_triangle(self) -> np.ndarray:
+        """(P,) int: input triangle of each patch."""
+        return self._arrays["patch_tri"]
+
+    @property
+    def patch_side(self) -> np.ndarray:
+        """(P,) int8: side of each patch, 0 front, 1 back."""
+        return self._arrays["patch_side"]
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(V, 3) float, m: mesh vertices of all shapes (world space)."""
+        return self._arrays["vertices"]
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(T, 3) int: vertex indices of the input triangles."""
+        return self._arrays["faces"]
+
+    @property
+    def vertex_uv(self) -> np.ndarray | None:
+        """(V, 2) float texture coordinates (NaN on shapes without UVs), or None."""
+        return self._arrays.get("vertex_uv")
+
+    @property
+    def triangle_area(self) -> np.ndarray:
+        """(T,) float, m^2: area of the input triangles."""
+        return self._arrays["triangle_area"]
+
+    @property
+    def triangle_shape(self) -> np.ndarray:
+        """(T,) int: shape of each input triangle (index into ``shape_ids``)."""
+        return self._arrays["triangle_shape"]
+
+    @property
+    def triangle_in_shape(self) -> np.ndarray:
+        """(T,) int: index of each input triangle within its shape (0-based, the shape's face order)."""
+        shape = np.asarray(self.triangle_shape, np.int64)
+        order = np.argsort(shape, kind="stable")
+        first = np.searchsorted(shape[order], shape[order], side="left")
+        out = np.empty(len(shape), np.int64)
+        out[order] = np.arange(len(shape)) - first
+        return out
+
+    @property
+    def triangle_reflectance(self) -> np.ndarray:
+        """(T, C) float: diffuse reflectance (albedo) of the front side of each triangle."""
+        return self._arrays["triangle_rho"]
+
+    @property
+    def back_reflectance(self) -> np.ndarray:
+        """(T, C) float: reflectance of the back side (zero where one-sided)."""
+        back = self._arrays.get("back_rho")
+        return np.zeros_like(self.triangle_reflectance) if back is None else back
+
+    @property
+    def triangle_emission(self) -> np.ndarray:
+        """(T, C) float, W/m^2: emitted radiosity E of the front side of each triangle."""
+        return self._arrays["triangle_emission"]
+
+    @property
+    def triangle_curve(self) -> tuple:
+        """(centre (T, 3), axis (T, 3), radius (T,)) of the analytic surface under each triangle
+        (radius 0 on flat shapes), m: mirad projects points of spheres and cylinders onto it."""
+        a = self._arrays
+        return a["curve_center"], a["curve_axis"], a["curve_radius"]
 
     # --- per triangle / shape / vertex --------------------------------------------------------
     def _per_patch(self, values: np.ndarray) -> np.ndarray:
-        patch = self._a["leaf_patch"]
-        n_patch = len(self._a["patch_tri"])
-        area = self.leaf_area
-        total = np.stack([np.bincount(patch, weights=area * values[:, c], minlength=n_patch)
-                          for c in range(values.shape[1])], 1)
-        return total / np.maximum(np.bincount(patch, weights=area, minlength=n_patch), 1e-300)[:, None]
+        return group_mean(self.leaf_patch, values, len(self.patch_triangle), weights=self.leaf_area)
 
     def _side(self, per_patch: np.ndarray, side: int) -> np.ndarray:
-        out = np.zeros((len(self._a["faces"]), per_patch.shape[1]))
-        mask = self._a["patch_side"] == side
-        out[self._a["patch_tri"][mask]] = per_patch[mask]
+        out = np.zeros((len(self.faces), per_patch.shape[1]))
+        mask = self.patch_side == side
+        out[self.patch_triangle[mask]] = per_patch[mask]
         return out
 
     @property
     def triangle_radiosity(self) -> np.ndarray:
-        return self._side(self._per_patch(self._a["leaf_radiosity"]), 0)
+        """(T, C) float, W/m^2: front-side radiosity per input triangle (area-weighted over its leaves)."""
+        return self._side(self._per_patch(self.leaf_radiosity), 0)
 
     @property
     def triangle_irradiance(self) -> np.ndarray:
-        return self._side(self._per_patch(self._a["leaf_irradiance"]), 0)
+        """(T, C) float, W/m^2: front-side irradiance per input triangle."""
+        return self._side(self._per_patch(self.leaf_irradiance), 0)
 
     @property
     def triangle_error(self) -> np.ndarray:
-        """(T, C) estimated absolute error of triangle_radiosity, W/m^2."""
-        return self._side(self._per_patch(self._a["leaf_error"]), 0)
+        """(T, C) float, W/m^2: estimated absolute error of ``triangle_radiosity``."""
+        return self._side(self._per_patch(self.leaf_error), 0)
 
     @property
     def back_radiosity(self) -> np.ndarray:
-        return self._side(self._per_patch(self._a["leaf_radiosity"]), 1)
+        """(T, C) float, W/m^2: back-side radiosity (zero where one-sided)."""
+        return self._side(self._per_patch(self.leaf_radiosity), 1)
 
     @property
-    def triangle_area(self) -> np.ndarray:
-        return self._a["triangle_area"]
-
-    @property
-    def triangle_shape(self) -> np.ndarray:
-        return self._a["triangle_shape"]
-
-    @property
-    def vertices(self) -> np.ndarray:
-        """(V, 3) mesh vertices of all shapes (world space)."""
-        return self._a["vertices"]
-
-    @property
-    def faces(self) -> np.ndarray:
-        """(T, 3) vertex indices of the input triangles."""
-        return self._a["faces"]
+    def back_irradiance(self) -> np.ndarray:
+        """(T, C) float, W/m^2: back-side irradiance (zero where one-sided)."""
+        return self._side(self._per_patch(self.leaf_irradiance), 1)
 
     @property
     def vertex_radiosity(self) -> np.ndarray:
-        """(V, C) area-weighted mean of the radiosity of the triangles around each vertex."""
-        faces, area = self._a["faces"], self._a["triangle_area"]
-        b = self.triangle_radiosity
-        n_vert = len(self._a["vertices"])
-        idx = faces.ravel()
-        w = np.repeat(area, 3)
-        total = np.stack([np.bincount(idx, weights=w * np.repeat(b[:, c], 3), minlength=n_vert)
-                          for c in range(b.shape[1])], 1)
+        """(V, C) float, W/m^2: area-weighted mean of the radiosity of the triangles around each
+        vertex, with the shadow-texture detail at the vertex where a leaf has one."""
+        n_vert = len(self.vertices)
+        idx = self.faces.ravel()
+        w = np.repeat(self.triangle_area, 3)
+        total = group_sum(idx, np.repeat(self.triangle_radiosity, 3, axis=0), n_vert, weights=w)
         total += self._vertex_detail(n_vert)
         return total / np.maximum(np.bincount(idx, weights=w, minlength=n_vert), 1e-300)[:, None]
 
     def _vertex_detail(self, n_vert: int) -> np.ndarray:
         """(V, C) triangle-area-weighted shadow-texture detail at the input vertices: for each
         front-side textured leaf with a corner on a vertex of its triangle, the detail there."""
-        a = self._a
         rows = self.detail_leaves
-        out = np.zeros((n_vert, a["leaf_radiosity"].shape[1]))
-        rows = rows[a["patch_side"][a["leaf_patch"][rows]] == 0]
+        out = np.zeros((n_vert, self.channels))
+        rows = rows[self.leaf_side[rows] == 0]
         if not len(rows):
             return out
-        tri = a["patch_tri"][a["leaf_patch"][rows]]
-        corners = a["leaf_verts"][rows]                                     # (T, 3 corners, 3)
-        tri_verts = a["vertices"][a["faces"][tri]]                          # (T, 3 vertices, 3)
-        diag = float(np.linalg.norm(a["vertices"].max(0) - a["vertices"].min(0))) or 1.0
+        tri = self.leaf_triangle[rows]
+        corners = self.leaf_vertices[rows]                                  # (T, 3 corners, 3)
+        tri_verts = self.vertices[self.faces[tri]]                          # (T, 3 vertices, 3)
+        diag = scene_diagonal(self.vertices)
         dist = np.linalg.norm(corners[:, :, None] - tri_verts[:, None], axis=-1)
         t, k, j = np.nonzero(dist < 1e-9 * diag)
         detail = self.detail_at(rows[t], LEAF_CORNER_UV[k])
-        np.add.at(out, a["faces"][tri[t], j], a["triangle_area"][tri[t], None] * detail)
+        np.add.at(out, self.faces[tri[t], j], self.triangle_area[tri[t], None] * detail)
         return out
 
     def shape_radiosity(self, shape_id: str) -> np.ndarray:
         """(C,) area-weighted mean radiosity over the shape's front side, W/m^2."""
-        index = self._shape_index(shape_id)
-        mask = self._a["triangle_shape"] == index
-        area = self._a["triangle_area"][mask]
+        index = self.shape_index(shape_id)
+        mask = self.triangle_shape == index
+        area = self.triangle_area[mask]
         return (self.triangle_radiosity[mask] * area[:, None]).sum(0) / area.sum()
 
-    def _shape_index(self, shape_id: str) -> int:
+    def shape_index(self, shape_id: str) -> int:
+        """Index of a shape id in ``shape_ids``; KeyError listing the ids if there is none."""
         try:
             return self.shape_ids.index(shape_id)
         except ValueError:
@@ -228,7 +360,7 @@ class Solution:
         from .emitters import direct_irradiance
         from .visibility import Geometry, gather_at_points
 
-        scene = self._require_scene()
+        scene = self.require_scene()
         points = np.atleast_2d(np.asarray(points, dtype=np.float64))
         normals = np.atleast_2d(np.asarray(normals, dtype=np.float64))
         if points.shape[1:] != (3,) or normals.shape != points.shape:
@@ -239,11 +371,11 @@ class Solution:
         if np.any(length == 0):
             raise ValueError("every normal must be non-zero")
         normals = normals / length
-        a = self._a
-        tri = a["patch_tri"][a["leaf_patch"]]
-        geo = Geometry.upload(a["leaf_verts"], a["leaf_normal"], a["curve_center"][tri],
-                              a["curve_axis"][tri], a["curve_radius"][tri], scene.diagonal)
-        h = gather_at_points(scene.mi_scene, points, normals, geo, a["leaf_radiosity"], rays=rays, seed=seed)
+        tri = self.leaf_triangle
+        center, axis, radius = self.triangle_curve
+        geo = Geometry.upload(self.leaf_vertices, self.leaf_normal, center[tri], axis[tri], radius[tri],
+                              scene.diagonal)
+        h = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed)
         if scene.light_emitters:
             # a tiny triangle around each point stands in for the point
             r = 1e-7 * scene.diagonal
@@ -257,7 +389,8 @@ class Solution:
             h = h + hd
         return h
 
-    def _require_scene(self):
+    def require_scene(self):
+        """The attached mirad Scene; SolutionMismatch with the fix if none is attached."""
         if self.scene is None:
             raise SolutionMismatch("this solution was loaded from a file without its scene; "
                                    "call solution.attach(mirad.load_scene(...)) first")
@@ -299,7 +432,7 @@ class Solution:
         elif suffix == ".exr":
             from .display import render, write_image
 
-            write_image(path, render(self._require_scene(), self))
+            write_image(path, render(self.require_scene(), self))
         else:
             raise OutputError(f"cannot save a solution as '{path.suffix}' ({path}); use .npz, .ply, .csv or .exr")
         return path
@@ -308,19 +441,21 @@ class Solution:
         meta = {"format": FORMAT, "fingerprint": self.fingerprint, "shape_ids": self.shape_ids,
                 "stats": self.stats}
         np.savez_compressed(handle, __meta__=np.frombuffer(json.dumps(meta, default=str).encode(), np.uint8),
-                            **self._a)
+                            **self._arrays)
 
     def summary(self) -> str:
-        """One paragraph: elements, links, rays, time, estimated error."""
+        """One paragraph: elements, links, rays, time per phase, estimated error."""
         s = self.stats
-        sec = s["seconds"]
-        return (f"{s['leaves']} elements ({s['elements']} in the hierarchy), {s['links']} links, "
-                f"{s['rays']:,} rays; {sec['total']:.2f} s (refine {sec['refine']:.2f}, visibility "
-                f"{sec['visibility']:.2f}, solve {sec['solve']:.2f}); estimated error "
-                f"{100 * s['estimated_error']:.2f} % (tolerance {100 * s['settings']['tolerance']:.2g} %); "
-                f"{s['solver']} solver, {s['solver_iterations']} iterations; "
+        sec = s.get("seconds", {})
+        phases = ", ".join(f"{k} {v:.2f}" for k, v in sec.items() if k != "total" and isinstance(v, (int, float)))
+        return (f"{s.get('leaves', '?')} elements ({s.get('elements', '?')} in the hierarchy), "
+                f"{s.get('links', '?')} links, {s.get('rays', 0):,} rays; {sec.get('total', 0.0):.2f} s"
+                + (f" ({phases})" if phases else "")
+                + f"; estimated error {100 * s['estimated_error']:.2f} % of mean(B - E) (tolerance "
+                f"{100 * s['settings']['tolerance']:.2g} %); "
+                + (f"{s['solver']} solver, {s.get('solver_iterations', '?')} iterations; " if "solver" in s else "")
                 + (f"{s['clusters']} clusters of patches as sources; " if s.get("clusters") else "")
-                + f"variant {s['variant']}.")
+                + f"variant {s.get('variant', '?')}.")
 
 
 def load_solution(path, scene=None) -> Solution:
@@ -339,36 +474,3 @@ def load_solution(path, scene=None) -> Solution:
     if scene is not None:
         sol.attach(scene)
     return sol
-
-
-def display_colors(radiosity: np.ndarray) -> np.ndarray:
-    """8-bit sRGB RGBA colours of radiance B/pi, exposed so the 99th percentile maps to white."""
-    radiance = np.asarray(radiosity, dtype=np.float64) / np.pi
-    if radiance.shape[1] == 1:
-        radiance = np.repeat(radiance, 3, axis=1)
-    scale = np.percentile(radiance.max(axis=1), 99) if len(radiance) else 1.0
-    x = np.clip(radiance / (scale if scale > 0 else 1.0), 0, 1)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    rgba = np.concatenate([np.round(srgb * 255), np.full((len(x), 1), 255)], axis=1)
-    return rgba.astype(np.uint8)
-
-
-def atomic_write(path, writer) -> None:
-    """Call writer(binary handle) on a temporary file beside path, then rename it into place."""
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise OutputError(f"cannot write '{path}': folder '{folder}' does not exist; create it first")
-    if not os.access(folder, os.W_OK):
-        raise OutputError(f"cannot write '{path}': folder '{folder}' is not writable; choose another output path")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            writer(handle)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise

@@ -34,6 +34,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .errors import OutputError, SettingsError
+from .files import atomic_write
 from .metrics import compare, image_noise_floor, image_relative_mse, shape_errors
 from .reference import (DEFAULT_CACHE, cached_image, cached_reference, camera_rays, triangle_reference)
 
@@ -309,8 +310,6 @@ def validate(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMP
         say(line.replace("**", ""))
 
     # --- images --------------------------------------------------------------------------------------
-    from .solution import atomic_write
-
     if images and last_sol is not None:
         result.image = _compare_images(loaded, last_sol, result, out, name, image_spp=image_spp,
                                        render_spp=render_spp, seed=reference_seed, cache_dir=cache_dir)
@@ -344,8 +343,6 @@ def finish(result: ValidationResult) -> ValidationResult:
 
 def write_outputs(result: ValidationResult, out, *, write_table: bool = True) -> None:
     """Write NAME-speed-error.png and (optionally) NAME.md for a result, atomically."""
-    from .solution import atomic_write
-
     out = Path(out)
     finish(result)
     plot = out / f"{result.name}-speed-error.png"
@@ -387,8 +384,6 @@ def _compare_images(scene, sol, result, out: Path, name: str, *, image_spp, rend
     import matplotlib.pyplot as plt
 
     import mirad
-    from .solution import atomic_write
-
     ref = cached_image(scene, cache_dir=cache_dir, spp=image_spp, seed=seed)
     t0 = time.perf_counter()
     how = "mirad.render"

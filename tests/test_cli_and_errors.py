@@ -220,7 +220,7 @@ def test_ctrl_c_during_a_solve_leaves_no_file_and_a_clean_message(tmp_path):
     try:
         deadline = time.time() + 120
         seen = ""
-        while "elements=" not in seen and time.time() < deadline:     # the progress bar: refinement runs
+        while "links=" not in seen and "elements=" not in seen and time.time() < deadline:     # the progress bar: refinement runs
             seen += proc.stderr.read1(4096) if hasattr(proc.stderr, "read1") else proc.stderr.read(1)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)

@@ -141,7 +141,7 @@ def _relative_error_of_mean(sol, scene, exact_mean):
     mask = sol.triangle_shape == scene.shape_index("receiver")
     b = sol.triangle_radiosity
     got = area_mean(b[mask], sol.triangle_area[mask])[0]
-    reflected = b - sol._a["triangle_emission"]
+    reflected = b - sol.triangle_emission
     mean_reflected = area_mean(reflected, sol.triangle_area)[0]
     return abs(got - exact_mean) * sol.triangle_area[mask].sum() / (sol.triangle_area.sum() * mean_reflected)
 
@@ -187,7 +187,7 @@ def test_error_map_is_exported(cornell, tmp_path):
     err = sol.triangle_error
     assert err.shape == sol.triangle_radiosity.shape and np.all(err >= 0) and err.max() > 0
     # the map's area integral over A_total * mean reflected B is the estimate
-    reflected = area_mean(sol.triangle_radiosity - sol._a["triangle_emission"], sol.triangle_area).mean()
+    reflected = area_mean(sol.triangle_radiosity - sol.triangle_emission, sol.triangle_area).mean()
     integral = area_mean(err, sol.triangle_area).mean()
     assert integral / reflected == pytest.approx(sol.stats["estimated_error"], rel=0.05)
     path = tmp_path / "cornell.ply"

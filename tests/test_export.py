@@ -9,6 +9,7 @@ import trimesh
 import mirad
 from conftest import run_cli, CLOSED_FORM_REL, SCENES
 from mirad import export
+from mirad.files import read_exr
 
 CORNELL = SCENES / "cornell-box" / "scene.xml"
 FURNACE = SCENES / "closed-form" / "furnace.xml"
@@ -44,7 +45,7 @@ def test_triangle_table_csv_and_npz(tmp_path, sol):
     b = np.array([[float(r[f"radiosity_{c}"]) for c in "rgb"] for r in rows])
     assert np.allclose(b, sol.triangle_radiosity, rtol=1e-6)
     absorbed = np.array([[float(r[f"absorbed_{c}"]) for c in "rgb"] for r in rows])
-    rho = sol._a["triangle_rho"]
+    rho = sol.triangle_reflectance
     naive = np.array([[(1 - rho[t, c]) * sol.triangle_irradiance[t, c] * sol.triangle_area[t] for c in range(3)]
                       for t in range(len(rows))])                 # one-sided scene: front only
     assert np.allclose(absorbed, naive, rtol=1e-6, atol=1e-12)
@@ -67,7 +68,7 @@ def test_closed_scene_absorbs_what_it_emits():
     """In the closed furnace every watt emitted is absorbed: sum (1 - rho) H A = sum E A."""
     sol = mirad.solve(FURNACE, tolerance=0.1)
     summary = export.shape_summary(sol)
-    emitted = (sol._a["triangle_emission"] * sol.triangle_area[:, None]).sum(0)
+    emitted = (sol.triangle_emission * sol.triangle_area[:, None]).sum(0)
     assert np.allclose(summary["absorbed"].sum(0), emitted, rtol=CLOSED_FORM_REL)
 
 
@@ -106,10 +107,10 @@ def test_dilation_fills_rings_around_islands_without_black():
     filled = np.zeros((9, 9), bool)
     image[3:6, 3:6] = 2.0
     filled[3:6, 3:6] = True
-    out = export._dilate(image, filled, 1)
+    out = export.dilate_islands(image, filled, 1)
     assert np.all(out[2:7, 2:7] == 2.0)          # one ring, same value: bilinear lookups see no black
     assert np.all(out[0] == 0) and np.all(out[:, 0] == 0)
-    assert np.all(export._dilate(image, filled, 8) == 2.0)
+    assert np.all(export.dilate_islands(image, filled, 8) == 2.0)
 
 
 def test_cli_export_with_saved_solution(tmp_path, sol):
@@ -123,7 +124,7 @@ def test_cli_export_with_saved_solution(tmp_path, sol):
     assert np.allclose(rows, sol.triangle_radiosity, rtol=1e-6)   # the saved solution, not a new solve
     assert len(trimesh.load(tmp_path / "m.ply", process=False).faces) == len(sol.faces)
     assert (tmp_path / "s.csv").read_text().splitlines()[0].startswith("shape_id,triangles,area,mean_radiosity_r")
-    channels = export.read_exr(maps / "floor.exr")
+    channels = read_exr(maps / "floor.exr")
     assert sorted(channels) == ["B", "G", "R"] and channels["R"].shape == (16, 16)
     assert sorted(p.stem for p in maps.glob("*.exr")) == sorted(sol.shape_ids)
 

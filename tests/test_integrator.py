@@ -106,8 +106,7 @@ def test_plugin_floor_mean_matches_the_solution(plugin_scene, plugin_image):
     floor = np.all(ids == "floor", axis=0)            # pixels entirely on the floor
     assert floor.sum() > 150
     weight = footprints(points)[floor]
-    a = sol._a
-    leaf_shape = np.array(sol.shape_ids)[a["triangle_shape"][a["patch_tri"][a["leaf_patch"]]]]
+    leaf_shape = np.array(sol.shape_ids)[sol.leaf_shape]
     samples = np.stack([naive_leaf(sol, points[k][floor], np.flatnonzero(leaf_shape == "floor"))
                         for k in range(len(OFFSETS))])
     assert np.all(samples >= 0)
@@ -134,8 +133,7 @@ def test_plugin_pixels_show_radiance_of_the_leaf_under_them(plugin_scene, plugin
     """Flat display: a pixel whose footprint lies in one leaf shows exactly that leaf's B / pi."""
     sol = plugin_scene.integrator().solution(plugin_scene)
     points, ids = camera_hits(plugin_scene, OFFSETS)
-    a = sol._a
-    leaf_shape = np.array(sol.shape_ids)[a["triangle_shape"][a["patch_tri"][a["leaf_patch"]]]]
+    leaf_shape = np.array(sol.shape_ids)[sol.leaf_shape]
     checked = 0
     for sid in ("floor", "light", "back"):
         mask = np.all(ids == sid, axis=0)
@@ -210,7 +208,7 @@ def test_saved_solution_renders_the_identical_image(tmp_path, xml_path):
     out = tmp_path / "img.exr"
     res = run_cli("render", xml_path, "--solution", tmp_path / "sol.npz", "-o", out, "--spp", 2, "--quiet")
     assert res.returncode == 0, res.stderr
-    from mirad.export import read_exr
+    from mirad.files import read_exr
 
     channels = read_exr(out)
     assert sorted(channels) == ["B", "G", "R"]

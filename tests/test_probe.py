@@ -39,7 +39,6 @@ def test_probe_at_element_centroids_matches_solution_within_tolerance(cornell_fi
     weighted error); each is probed at the centroids of its four midpoint sub-triangles.
     """
     sol = cornell_fine
-    a = sol._a
     area = sol.leaf_area
     rng = np.random.default_rng(1)
     pick = rng.choice(len(area), 300, p=area / area.sum())
@@ -47,10 +46,10 @@ def test_probe_at_element_centroids_matches_solution_within_tolerance(cornell_fi
     m01, m12, m20 = (v[:, 0] + v[:, 1]) / 2, (v[:, 1] + v[:, 2]) / 2, (v[:, 2] + v[:, 0]) / 2
     sub = np.stack([(v[:, 0] + m01 + m20) / 3, (v[:, 1] + m12 + m01) / 3, (v[:, 2] + m20 + m12) / 3,
                     (m01 + m12 + m20) / 3], 1)                                  # (n, 4, 3)
-    normals = np.repeat(a["leaf_normal"][pick], 4, axis=0)
+    normals = np.repeat(sol.leaf_normal[pick], 4, axis=0)
     h = sol.irradiance_at(sub.reshape(-1, 3), normals, rays=8).reshape(len(pick), 4, -1).mean(1)
-    tri = a["patch_tri"][a["leaf_patch"][pick]]
-    b_probe = a["triangle_emission"][tri] + a["triangle_rho"][tri] * h
+    tri = sol.leaf_triangle[pick]
+    b_probe = sol.triangle_emission[tri] + sol.triangle_reflectance[tri] * h
     b_leaf = sol.leaf_radiosity[pick]
     rel_l1 = np.abs(b_probe - b_leaf).sum(0) / b_leaf.sum(0)
     # The probe is one bounce of gathering from the solution, so the gap is the solution's own

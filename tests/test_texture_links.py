@@ -77,7 +77,7 @@ def test_shadow_detail_shows_the_shadow_inside_coarse_leaves():
         err_flat, err_shown = np.abs(flat - ref).mean(), np.abs(shown - ref).mean()
         assert err_shown < err_flat / 3, (leaf, err_shown, err_flat)
         # zero mean over the texel centres inside the leaf (the quadrature of the link's transfer)
-        u, v = S.texel_uv(sol._a["leaf_detail"].shape[1])
+        u, v = S.texel_uv(sol.leaf_detail.shape[1])
         inside = (u + v <= 1.0).ravel()
         texels = np.stack([u.ravel(), v.ravel()], 1)[inside]
         detail = sol.detail_at(np.full(len(texels), leaf), texels)[:, 0]
@@ -89,7 +89,7 @@ def test_shadow_detail_is_shown_by_render_and_kept_by_save(tmp_path):
     import drjit as dr
     import mitsuba as mi
 
-    from mirad.display import Shading
+    from mirad.shading import Shading
 
     scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
     sol = mirad.solve(scene, tolerance=0.01, shadow_textures=True, quiet=True)
@@ -97,7 +97,7 @@ def test_shadow_detail_is_shown_by_render_and_kept_by_save(tmp_path):
     p, uv, n = _points_on_leaf(sol, leaf, 200, seed=1)
     f = lambda x: mi.Float(np.ascontiguousarray(x, np.float32))  # noqa: E731
     shading = Shading(sol)
-    shape = int(sol.triangle_shape[sol._a["patch_tri"][sol._a["leaf_patch"][leaf]]])
+    shape = int(sol.leaf_shape[leaf])
     found_leaf, found_uv, found = shading.locate(
         mi.Point3f(*(f(p[:, i]) for i in range(3))), mi.Vector3f(*(f(np.full(len(p), n[i])) for i in range(3))),
         dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), shape, np.uint32)), mi.Bool(np.ones(len(p), bool)))

@@ -1,0 +1,76 @@
+"""Array helpers shared by every module: numpy -> Dr.Jit converters, group means, constants.
+
+A leaf module (only ``_runtime`` before Mitsuba), the one home of each of these.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
+
+import mitsuba as mi  # noqa: E402
+
+__all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "to_float", "to_uint", "to_vector3", "to_point3", "scene_diagonal",
+           "group_sum", "group_mean"]
+
+#: Largest number of lanes in one Dr.Jit launch (bounds the memory of a wave).
+MAX_LANES = 1 << 22
+#: Shadow and gather rays start and stop this fraction of the scene diagonal off a surface.
+RAY_OFFSET = 1e-5
+#: (u, v) of a leaf's corners v0, v1, v2 in its parametrisation y = v0 + u (v1 - v0) + v (v2 - v0).
+LEAF_CORNER_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def to_float(a) -> "mi.Float":
+    """mi.Float of an array (flattened, float32)."""
+    return mi.Float(np.ascontiguousarray(np.ravel(a), dtype=np.float32))
+
+
+def to_uint(a) -> "mi.UInt32":
+    """mi.UInt32 of an array of non-negative integers (flattened)."""
+    return mi.UInt32(np.ascontiguousarray(np.ravel(a), dtype=np.uint32))
+
+
+def to_vector3(a) -> "mi.Vector3f":
+    """mi.Vector3f of an (N, 3) array."""
+    a = np.asarray(a)
+    return mi.Vector3f(to_float(a[:, 0]), to_float(a[:, 1]), to_float(a[:, 2]))
+
+
+def to_point3(a) -> "mi.Point3f":
+    """mi.Point3f of an (N, 3) array."""
+    a = np.asarray(a)
+    return mi.Point3f(to_float(a[:, 0]), to_float(a[:, 1]), to_float(a[:, 2]))
+
+
+def scene_diagonal(vertices: np.ndarray) -> float:
+    """Length of the bounding-box diagonal of vertices (V, 3), m; 1.0 for an empty or point set."""
+    vertices = np.asarray(vertices, np.float64)
+    if not len(vertices):
+        return 1.0
+    return float(np.linalg.norm(vertices.max(0) - vertices.min(0))) or 1.0
+
+
+def group_sum(group: np.ndarray, values: np.ndarray, count: int, *, weights=None) -> np.ndarray:
+    """Per-group sums of ``weights * values``: (count, C) for values (N, C), (count,) for (N,).
+
+    ``group`` (N,) int in [0, count); ``weights`` (N,) or None (all ones).
+    """
+    values = np.asarray(values, np.float64)
+    w = np.ones(len(group)) if weights is None else np.asarray(weights, np.float64)
+    if values.ndim == 1:
+        return np.bincount(group, weights=w * values, minlength=count)
+    return np.stack([np.bincount(group, weights=w * values[:, c], minlength=count)
+                     for c in range(values.shape[1])], 1).reshape(count, values.shape[1])
+
+
+def group_mean(group: np.ndarray, values: np.ndarray, count: int, *, weights=None) -> np.ndarray:
+    """Per-group weighted means (area-weighted when ``weights`` are areas); 0 for empty groups.
+
+    Same shapes as :func:`group_sum`.
+    """
+    w = np.ones(len(group)) if weights is None else np.asarray(weights, np.float64)
+    total = group_sum(group, values, count, weights=w)
+    norm = np.maximum(np.bincount(group, weights=w, minlength=count), 1e-300)
+    return total / (norm if total.ndim == 1 else norm[:, None])
