@@ -5,7 +5,8 @@ on some kernels ("Cannot select ... fminimum"). The ``karellen-llvm-core`` wheel
 ships a recent LLVM: when it is installed and the user has not set
 ``DRJIT_LIBLLVM_PATH`` themselves, we point Dr.Jit at it *before* ``drjit`` is
 imported. This module must therefore be imported before ``mitsuba`` or ``drjit``
-anywhere in the package.
+anywhere in the package, and users must ``import mirad`` first: Dr.Jit loads LLVM at import and
+cannot switch afterwards, so ``check_llvm`` names that cause (``LATE``) when it is the one.
 
 Measured here (Mitsuba 3.9.1, Dr.Jit 1.5.0, wheel LLVM 23.1): the library loads
 without preloading the wheel's libc++/libc++abi/libunwind, and preloading them
@@ -43,6 +44,9 @@ def _preload_llvm() -> None:
         os.environ["DRJIT_LIBLLVM_PATH"] = str(llvm)
 
 
+#: True when Dr.Jit was imported (``import mitsuba`` or ``import drjit``) before mirad: it loads its
+#: LLVM at import, so the bundled one could not be pointed at any more.
+LATE = "drjit" in sys.modules
 _preload_llvm()
 
 import drjit as dr  # noqa: E402
@@ -68,15 +72,19 @@ def check_llvm() -> tuple[int, int, int]:
         has_llvm = dr.has_backend(dr.JitBackend.LLVM)
     except Exception:  # pragma: no cover
         has_llvm = False
-    if not has_llvm:
-        raise EnvironmentProblem(f"Dr.Jit found no usable LLVM library; {_LLVM_ADVICE}.")
-    version = tuple(int(v) for v in dr.detail.llvm_version())
-    if version < MIN_LLVM:
+    version = tuple(int(v) for v in dr.detail.llvm_version()) if has_llvm else None
+    if version is not None and version >= MIN_LLVM:
+        return version
+    found = f"LLVM {'.'.join(map(str, version))}, which aborts on some kernels (needs >= 16)" if version \
+        else "no usable LLVM library"
+    bundled = _bundled_llvm()
+    if LATE and bundled is not None and os.environ.get("DRJIT_LIBLLVM_PATH") == str(bundled):
         raise EnvironmentProblem(
-            f"Dr.Jit loaded LLVM {'.'.join(map(str, version))}, which aborts on some kernels "
-            f"(needs >= 16); {_LLVM_ADVICE}."
+            f"Dr.Jit loaded {found} because mitsuba or drjit was imported before mirad, and Dr.Jit picks its "
+            f"LLVM at import; the installed one at {bundled} would work: 'import mirad' before 'import "
+            f"mitsuba', or set DRJIT_LIBLLVM_PATH={bundled} in the environment before Python starts"
         )
-    return version
+    raise EnvironmentProblem(f"Dr.Jit loaded {found}; {_LLVM_ADVICE}.")
 
 
 def choose_variant(requested: str | None = None) -> str:

@@ -273,24 +273,28 @@ def load_scene(source, *, variant: str | None = None) -> Scene:
             raise SceneError(f"scene file '{path}' does not exist; check the path")
         if os.path.isdir(path):
             raise SceneError(f"'{path}' is a folder; give the scene's XML file")
+        _check_is_xml(path)
+        meshes = _mesh_files(path)
         try:
             mi_scene = mi.load_file(path, optimize=False)
         except Exception as exc:  # Mitsuba raises RuntimeError with its own text
-            raise SceneError(_explain_load_error(path, exc)) from None
+            raise SceneError(_explain_load_error(path, exc, meshes)) from None
     elif isinstance(source, dict):
+        meshes = _mesh_files(source)
         try:
             mi_scene = mi.load_dict(source, optimize=False)
         except Exception as exc:
-            raise SceneError(_explain_load_error("<dict>", exc)) from None
+            raise SceneError(_explain_load_error("<dict>", exc, meshes)) from None
     elif isinstance(source, mi.Scene):
-        mi_scene = source
+        mi_scene, meshes = source, []
     else:
         raise SceneError(
             f"cannot load a scene from {type(source).__name__}; give an XML path, a Mitsuba dict or an mi.Scene"
         )
     where = path or ("<dict>" if isinstance(source, dict) else "<scene>")
+    _check_obj_faces(where, meshes)
     origin, notes = _recentre(mi_scene, where, own=not isinstance(source, mi.Scene))
-    scene = _ingest(mi_scene, path, variant, origin=origin)
+    scene = _ingest(mi_scene, path, variant, origin=origin, meshes=meshes)
     for note in notes:
         _warn_once(scene, note)
     return scene
@@ -352,7 +356,107 @@ def _recentre(mi_scene, where: str, *, own: bool) -> tuple[np.ndarray, list]:
     return centre, notes
 
 
+#: Mesh formats Mitsuba reads from a file, by plugin type.
+MESH_TYPES = ("ply", "obj", "serialized", "stl")
+
+
+def _check_is_xml(path: str) -> None:
+    """Refuse a mesh (or any non-XML file) given where a scene file is expected."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64).lstrip(b"\xef\xbb\xbf \t\r\n")
+    except OSError as exc:
+        raise SceneError(f"cannot read scene file '{path}' ({exc.strerror}); check its permissions") from None
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if head.startswith(b"<"):
+        return
+    kind = suffix if suffix in MESH_TYPES else ("ply" if head.startswith(b"ply") else None)
+    if kind:
+        raise SceneError(
+            f"'{path}' is a {kind.upper()} mesh, not a scene; wrap it in a scene XML with a light, e.g. "
+            f"<scene version=\"3.0.0\"><shape type=\"{kind}\"><string name=\"filename\" "
+            f"value=\"{Path(path).name}\"/></shape><emitter type=\"constant\"/></scene>")
+    raise SceneError(f"'{path}' is not a Mitsuba scene XML file (it does not start with '<'); give the "
+                     "scene's .xml file")
+
+
+def _mesh_files(source) -> list:
+    """Mesh files a scene XML path or dict refers to: [(shape id or '', plugin type, path)].
+
+    Read before Mitsuba loads the scene, so messages can name the file at fault. XML paths are
+    resolved against the scene's folder as Mitsuba does; ``$parameters`` and includes are skipped.
+    """
+    found = []
+    if isinstance(source, dict):
+        def walk(d, key):
+            if isinstance(d, dict):
+                if d.get("type") in MESH_TYPES and isinstance(d.get("filename"), str):
+                    found.append((str(d.get("id", key)), d["type"], d["filename"]))
+                for k, v in d.items():
+                    walk(v, k)
+        walk(source, "")
+        return found
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(source).getroot()
+    except (ET.ParseError, OSError, UnicodeDecodeError):
+        return found
+    base = Path(source).parent
+    for shape in root.iter("shape"):
+        kind = shape.get("type", "")
+        name = next((c.get("value") for c in shape if c.tag == "string" and c.get("name") == "filename"), None)
+        if kind in MESH_TYPES and name and "$" not in name:
+            found.append((shape.get("id", ""), kind, str(base / name)))
+    return found
+
+
+def _check_obj_faces(where: str, meshes: list) -> None:
+    """Refuse OBJ files with a face line of fewer than 3 vertices (a file cut off mid-line).
+
+    Mitsuba drops such a face silently; the file is truncated or corrupt, and the answer would be
+    missing a piece of surface with no word.
+    """
+    import re
+
+    short = re.compile(rb"^[ \t]*f(?:[ \t]+[^ \t\r\n]+){0,2}[ \t]*\r?$", re.MULTILINE)
+    for sid, kind, name in meshes:
+        if kind != "obj" or not os.path.isfile(name):
+            continue
+        with open(name, "rb") as f:
+            data = f.read()
+        bad = short.search(data)
+        if bad:
+            line = data.count(b"\n", 0, bad.start()) + 1
+            raise SceneError(f"{where}: mesh file '{name}'{_shape_note(sid)}: line {line} is a face with fewer "
+                             "than 3 vertices (the file is cut off or corrupt); re-export the mesh")
+
+
+def _shape_note(sid: str) -> str:
+    return f" (shape '{sid}')" if sid else ""
+
+
+def _culprit(meshes: list, text: str):
+    """The mesh file behind a Mitsuba load error: the one named in it, else the first Mitsuba cannot
+    load on its own; (id, type, path) or None."""
+    for mesh in meshes:
+        if os.path.basename(mesh[2]) and os.path.basename(mesh[2]) in text:
+            return mesh
+    for mesh in meshes:
+        try:
+            mi.load_dict({"type": mesh[1], "filename": mesh[2]})
+        except Exception:
+            return mesh
+    return None
+
+
 _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user should do)
+    ("incompatible sizes", "the mesh has no faces (a point cloud?) or no vertices; mirad needs triangles: "
+                           "re-export it with its faces"),
+    ("codec can't decode", "the file is corrupt or not a mesh of that format (unreadable bytes in its header); "
+                           "re-export it"),
+    ("reference to invalid vertex", "a face refers to a vertex the file does not have (the file is cut off or "
+                                    "corrupt); re-export the mesh"),
     ("parsing of xml file", "fix the XML syntax at the position given"),
     ("plugin \"", "check the plugin's 'type' name against Mitsuba's plugin list"),
     ("file not found", "check that every referenced file exists (paths are relative to the scene file)"),
@@ -363,17 +467,22 @@ _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user sh
 )
 
 
-def _explain_load_error(where: str, exc: Exception) -> str:
+def _explain_load_error(where: str, exc: Exception, meshes: list = ()) -> str:
     text = str(exc).strip()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     detail = lines[-1] if lines else type(exc).__name__
     low = text.lower()
-    fix = next((f for key, f in _LOAD_FIXES if key in low),
-               "fix the scene so that Mitsuba itself can load it")
-    return f"{where}: Mitsuba could not load the scene ({detail}); {fix}"
+    fix = next((f for key, f in _LOAD_FIXES if key in low), None)
+    if "parsing of xml file" not in low and meshes:
+        mesh = _culprit(list(meshes), text)
+        if mesh is not None:
+            return (f"{where}: mesh file '{mesh[2]}'{_shape_note(mesh[0])} cannot be loaded ({detail}); "
+                    f"{fix or 'the file is corrupt or not a ' + mesh[1].upper() + ' mesh; re-export it'}")
+    return f"{where}: Mitsuba could not load the scene ({detail}); {fix or 'fix the scene so that Mitsuba itself can load it'}"
 
 
-def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | None = None) -> Scene:
+def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | None = None,
+            meshes: list = ()) -> Scene:
     where = path or "<scene>"
     shapes = list(mi_scene.shapes())
     if not shapes:
@@ -389,7 +498,7 @@ def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | No
         ids.append(sid)
         kind = shape.class_name()
         types.append(kind)
-        verts, faces, uv, curve = _triangulate(shape, sid, where)
+        verts, faces, uv, curve = _triangulate(shape, sid, where, {m[0]: m[2] for m in meshes if m[0]})
         if not shape.is_mesh():
             faces = _curved_shading_side(mi_scene, shape, verts, faces)
         if not np.all(np.isfinite(verts)):
@@ -520,13 +629,22 @@ def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ m[:3, :3].T + m[:3, 3]
 
 
-def _triangulate(shape, sid: str, where: str):
+def _file_note(sid: str, files: dict) -> str:
+    return f" (mesh file '{files[sid]}')" if sid in files else ""
+
+
+def _triangulate(shape, sid: str, where: str, files: dict | None = None):
     """Return (vertices (V,3), faces (F,3), uv (V,2) or None, (center, axis, radius))."""
     flat = (np.zeros(3), np.zeros(3), 0.0)
+    files = files or {}
     kind = shape.shape_type()
     if shape.is_mesh():
         verts = np.array(shape.vertex_positions_buffer().numpy(), dtype=np.float64).reshape(-1, 3)
         faces = np.array(shape.faces_buffer().numpy(), dtype=np.int64).reshape(-1, 3)
+        if faces.size and faces.max() >= len(verts):
+            raise SceneError(f"{where}: shape '{sid}'{_file_note(sid, files)}: a face refers to vertex "
+                             f"{int(faces.max())} of {len(verts)} (indices out of range: the mesh file is "
+                             "corrupt); re-export the mesh")
         uv = None
         if shape.has_vertex_texcoords():
             uv = np.array(shape.vertex_texcoords_buffer().numpy(), dtype=np.float64).reshape(-1, 2)
