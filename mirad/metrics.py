@@ -157,6 +157,23 @@ def image_relative_mse(image, reference, *, mask=None) -> float:
     return float(np.mean((image[sel] - r) ** 2 / (r * r + eps)))
 
 
+def image_relative_l1(image, reference, *, mask=None) -> float:
+    """Relative L1 of an image: sum |I - R| over sum R (pixels and channels in ``mask``).
+
+    A robust companion of ``image_relative_mse``: each pixel counts in proportion to its
+    brightness, not to its squared relative error, so a few pixels at shadow edges or on a
+    light do not decide it. Scale free.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if image.shape != reference.shape:
+        raise ValueError(f"image {image.shape} and reference {reference.shape} must have the same shape")
+    sel = np.ones(image.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    if not sel.any():
+        raise ValueError("the mask selects no pixel")
+    return float(np.abs(image[sel] - reference[sel]).sum() / max(float(reference[sel].sum()), 1e-300))
+
+
 def image_noise_floor(stderr, reference, *, mask=None) -> float:
     """The relative MSE a perfect image would show against this noisy reference: mean sigma^2/(R^2+eps)."""
     stderr = np.asarray(stderr, dtype=np.float64)

@@ -97,3 +97,19 @@ def test_bad_input_is_rejected():
         relative_l1(np.ones((3, 3)), np.zeros((3, 3)))
     with pytest.raises(ValueError, match="area"):
         relative_l1(np.ones((3, 3)), np.ones((3, 3)), area=np.ones(2))
+
+
+def test_image_relative_l1_is_scale_free_and_robust_to_a_few_bright_pixels():
+    from mirad.metrics import image_relative_l1, image_relative_mse
+
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(0.5, 1.0, (32, 32, 3))
+    assert image_relative_l1(1.1 * ref, ref) == pytest.approx(0.1)
+    assert image_relative_l1(10 * 1.1 * ref, 10 * ref) == pytest.approx(0.1)
+    spoiled = ref.copy()
+    spoiled[:3, :3] = 0.0                                   # 9 of 1024 pixels black (a missed light)
+    dark = ref * 1e-3
+    dark[:3, :3] = ref[:3, :3]
+    # relative MSE: the few near-black reference pixels decide it; relative L1 stays at their share
+    assert image_relative_l1(spoiled, ref) == pytest.approx(ref[:3, :3].sum() / ref.sum())
+    assert image_relative_mse(dark * 0 + ref, dark) > 100 * image_relative_l1(spoiled, ref)
