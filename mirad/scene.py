@@ -275,12 +275,14 @@ def load_scene(source, *, variant: str | None = None) -> Scene:
             raise SceneError(f"'{path}' is a folder; give the scene's XML file")
         _check_is_xml(path)
         meshes = _mesh_files(path)
+        _check_ply_indices(path, meshes)
         try:
             mi_scene = mi.load_file(path, optimize=False)
         except Exception as exc:  # Mitsuba raises RuntimeError with its own text
             raise SceneError(_explain_load_error(path, exc, meshes)) from None
     elif isinstance(source, dict):
         meshes = _mesh_files(source)
+        _check_ply_indices("<dict>", meshes)
         try:
             mi_scene = mi.load_dict(source, optimize=False)
         except Exception as exc:
@@ -430,6 +432,31 @@ def _check_obj_faces(where: str, meshes: list) -> None:
             line = data.count(b"\n", 0, bad.start()) + 1
             raise SceneError(f"{where}: mesh file '{name}'{_shape_note(sid)}: line {line} is a face with fewer "
                              "than 3 vertices (the file is cut off or corrupt); re-export the mesh")
+
+
+def _check_ply_indices(where: str, meshes: list) -> None:
+    """Refuse PLY files whose faces index past their vertices, before Mitsuba reads them.
+
+    Mitsuba does not check PLY face indices and crashes the process (segmentation fault) on one far
+    out of range, so each PLY is read once with trimesh (no processing) first. Files trimesh cannot
+    read are left to Mitsuba, whose error is explained by ``_explain_load_error``.
+    """
+    import trimesh
+
+    for sid, kind, name in meshes:
+        if kind != "ply" or not os.path.isfile(name):
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                mesh = trimesh.load(name, file_type="ply", process=False, force="mesh")
+            faces, count = np.asarray(mesh.faces), len(mesh.vertices)
+        except Exception:
+            continue
+        if faces.size and (faces.max() >= count or faces.min() < 0):
+            bad = int(faces.max() if faces.max() >= count else faces.min())
+            raise SceneError(f"{where}: mesh file '{name}'{_shape_note(sid)}: a face refers to vertex {bad} of "
+                             f"{count} (indices out of range: the file is corrupt); re-export the mesh")
 
 
 def _shape_note(sid: str) -> str:
