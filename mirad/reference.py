@@ -2,7 +2,7 @@
 
 Per triangle, two estimators, both unbiased and both driven by Mitsuba's ``path`` integrator:
 
-``method="outgoing"`` (default, the efficient one of DESIGN §4)
+``method="outgoing"`` (default, the cheaper one: emitter sampling at the point itself; see docs/method.md)
     points uniform by area on the triangle; at each, a ray aimed at the point from just above it
     along the front normal makes ``path`` return the outgoing radiance L_o there (emission plus
     everything reflected, with emitter sampling at that very point), so B = pi * L_o.
