@@ -139,12 +139,8 @@ def shape_errors(value, reference, *, area, shape, stderr=None, names=None) -> l
     return rows
 
 
-def image_relative_mse(image, reference, *, mask=None) -> float:
-    """Mean per-pixel relative squared error (I - R)^2 / (R^2 + eps), eps = 1e-2 mean(R)^2.
-
-    Scale free: multiplying both images by a constant leaves it unchanged. ``mask`` (H, W) bool
-    restricts the mean to some pixels (e.g. fully covered ones).
-    """
+def _masked_pixels(image, reference, mask) -> tuple:
+    """(image, reference) pixels (N, C) float64 selected by mask (H, W) bool (all if None)."""
     image = np.asarray(image, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
     if image.shape != reference.shape:
@@ -152,9 +148,18 @@ def image_relative_mse(image, reference, *, mask=None) -> float:
     sel = np.ones(image.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     if not sel.any():
         raise ValueError("the mask selects no pixel")
-    r = reference[sel]
+    return image[sel], reference[sel]
+
+
+def image_relative_mse(image, reference, *, mask=None) -> float:
+    """Mean per-pixel relative squared error (I - R)^2 / (R^2 + eps), eps = 1e-2 mean(R)^2.
+
+    Scale free: multiplying both images by a constant leaves it unchanged. ``mask`` (H, W) bool
+    restricts the mean to some pixels (e.g. fully covered ones).
+    """
+    i, r = _masked_pixels(image, reference, mask)
     eps = IMAGE_EPSILON * max(float(r.mean()), 1e-300) ** 2
-    return float(np.mean((image[sel] - r) ** 2 / (r * r + eps)))
+    return float(np.mean((i - r) ** 2 / (r * r + eps)))
 
 
 def image_relative_l1(image, reference, *, mask=None) -> float:
@@ -164,14 +169,8 @@ def image_relative_l1(image, reference, *, mask=None) -> float:
     brightness, not to its squared relative error, so a few pixels at shadow edges or on a
     light do not decide it. Scale free.
     """
-    image = np.asarray(image, dtype=np.float64)
-    reference = np.asarray(reference, dtype=np.float64)
-    if image.shape != reference.shape:
-        raise ValueError(f"image {image.shape} and reference {reference.shape} must have the same shape")
-    sel = np.ones(image.shape[:2], bool) if mask is None else np.asarray(mask, bool)
-    if not sel.any():
-        raise ValueError("the mask selects no pixel")
-    return float(np.abs(image[sel] - reference[sel]).sum() / max(float(reference[sel].sum()), 1e-300))
+    i, r = _masked_pixels(image, reference, mask)
+    return float(np.abs(i - r).sum() / max(float(r.sum()), 1e-300))
 
 
 def image_noise_floor(stderr, reference, *, mask=None) -> float:
