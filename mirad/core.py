@@ -9,6 +9,9 @@ Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
     direct      point/spot/directional/environment light on each leaf (emitters.py)
     solve       B = E + rho (push F pull) B on the leaves (linear.py), warm-started
     estimate    summed link power errors over A_total * mean(B - E)
+    gather      after the last solve: every input patch under a face-cluster receiver
+                evaluates that cluster's links again at its own points and rays
+                (``final_gather``); its visibility noise is added to the estimate
 
 Multigridding: after each solve the link errors are recomputed from the new radiosity;
 eps is set so that the links under it hold at most half the error budget
@@ -27,7 +30,7 @@ import scipy.sparse as sp
 from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
-from .nodes import TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
+from .nodes import FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
 from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, link_values, power_errors,
                      refinement_threshold)
 from .scene import Scene
@@ -69,7 +72,7 @@ class State:
 
     def __post_init__(self) -> None:
         self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
-                       "solve": 0.0, "estimate": 0.0}
+                       "solve": 0.0, "estimate": 0.0, "gather": 0.0}
         n = len(self.nodes)
         self.direct = np.zeros((n, self.channels))
         self.direct_error = np.zeros((n, self.channels))
@@ -325,6 +328,79 @@ def solve(state: State, previous: Solved | None) -> Solved:
     return Solved(leaves, system, b, pull @ b, iterations, residual)
 
 
+@dataclass
+class Gathered:
+    """The final gather: irradiance of the leaves (L, C) W/m^2 and the standard error of
+    its visibility sampling as power (L,) W."""
+
+    irradiance: np.ndarray
+    noise_power: np.ndarray
+
+
+#: Most (patch, link) pairs per final-gather wave (bounds its memory: ~100 B a pair).
+GATHER_CHUNK = 1 << 18
+#: Shadow rays per quadrature point in the final gather.
+GATHER_RAYS = 4
+
+
+def final_gather(state: State, solved: Solved) -> Gathered:
+    """Stage gather: the light of links on face clusters, gathered again at each input
+    patch's own quadrature points from the sources' solved radiosity.
+
+    A face cluster receives its links' light as one mean; pushed down unchanged, every
+    triangle below would get that mean. Here each input patch below it evaluates those links
+    itself (exact unoccluded form factor and its own shadow rays), so receivers can stay
+    coarse where the light is smooth while every input triangle still gets its own share,
+    shadows included. Links on a patch or on its parts are already the patch's own.
+    """
+    t = time.perf_counter()
+    nodes, links, leaves = state.nodes, state.links, solved.leaves
+    channels = state.channels
+    n_patch = len(state.surface.verts)
+    on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
+    # what the leaves got from face-cluster links (to be replaced by each patch's own)
+    face_links = sp.csr_matrix((links.ff[on_face].astype(np.float64), (links.recv[on_face], links.src[on_face])),
+                               shape=(len(nodes), len(nodes)))
+    h_face = solved.system.push @ (face_links @ solved.b_node)
+    below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
+    start = below.indptr[links.recv[on_face]]
+    count = below.indptr[links.recv[on_face] + 1] - start
+    pair_link = on_face[np.repeat(np.arange(len(on_face)), count)]
+    offset = np.arange(len(pair_link)) - np.repeat(np.cumsum(count) - count, count)
+    pair_patch = below.indices[np.repeat(start, count) + offset]
+    h_patch = np.zeros((n_patch, channels))
+    var = np.zeros(n_patch)
+    if state.buffers is None or state.buffers.size != len(nodes):
+        state.buffers = NodeBuffers.upload(nodes)
+    inner = 0.0
+    for a in range(0, len(pair_patch), GATHER_CHUNK):
+        recv, src = pair_patch[a:a + GATHER_CHUNK], links.src[pair_link[a:a + GATHER_CHUNK]]
+        t1 = time.perf_counter()
+        pt = evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=1,
+                      seed=state.settings.seed + 0x7E57, offset=state.offset)
+        inner += time.perf_counter() - t1
+        state.rays += pt.rays
+        w = nodes.recv_w[recv].astype(np.float64)
+        ff = (w * pt.gv).sum(axis=1)
+        ff_unocc = (w * pt.g).sum(axis=1)
+        b = solved.b_node[src]
+        for c in range(channels):
+            h_patch[:, c] += np.bincount(recv, weights=ff * b[:, c], minlength=n_patch)
+        vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+        partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+        v = np.where(partial, (ff_unocc * b.max(axis=1)) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * GATHER_RAYS), 0.0)
+        var += np.bincount(recv, weights=v, minlength=n_patch)
+    patch_of = nodes.patch[leaves]
+    h_leaf = solved.system.gather(solved.b_leaf) - h_face + h_patch[patch_of]
+    rho = state.patch_rho[nodes.patch[leaves]].max(axis=1)
+    # a patch's noise spread over its leaves by area
+    share = nodes.area[leaves] / np.maximum(nodes.area[patch_of], 1e-300)
+    noise = EXPECTED_ABS * rho * share * nodes.area[patch_of] * np.sqrt(var[patch_of])
+    state.timing["transfer"] += inner
+    state.timing["gather"] += time.perf_counter() - t - inner
+    return Gathered(h_leaf, noise)
+
+
 def source_state(state: State, solved: Solved) -> SourceState:
     """Per-node radiosity figures the errors need (see refine.SourceState).
 
@@ -346,7 +422,21 @@ def source_state(state: State, solved: Solved) -> SourceState:
     dev = measured if SOURCE_DEVIATION == "measured" else np.maximum(measured, estimated)
     below = np.zeros(len(state.nodes))
     np.maximum.at(below, pull.row, b_leaf[pull.col].max(axis=1))
-    return SourceState(b_node.max(axis=1), below, dev)
+    leaf_area = state.nodes.area[solved.leaves]
+    rho_mean = float((leaf_area * solved.system.rho.max(axis=1)).sum() / max(leaf_area.sum(), 1e-300))
+    return SourceState(b_node.max(axis=1), below, dev, rho_mean * amplification(state, solved))
+
+
+def amplification(state: State, solved: Solved) -> float:
+    """Reflected power of the solution over that of its first bounce (>= 1; 1 / (1 - rho)
+    in a furnace): how much interreflection multiplies an error in gathered light."""
+    system = solved.system
+    area = state.nodes.area[solved.leaves][:, None]
+    emitted = state.patch_emission[state.nodes.patch[solved.leaves]]
+    first = system.emission - emitted + system.rho * system.gather(emitted)
+    total = float((area * (solved.b_leaf - emitted)).sum())
+    once = float((area * first).sum())
+    return max(1.0, total / once) if once > 0 else 1.0
 
 
 def reflected_mean(state: State, solved: Solved) -> float:
@@ -431,6 +521,9 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
             iterations += solved.iterations
     finally:
         bar.close()
+    gathered = final_gather(state, solved)
+    # the final gather's own visibility noise adds to the estimate of the output
+    est.relative += float(gathered.noise_power.sum()) / max(state.total_area * est.reflected_mean, 1e-300)
     if capped:
         warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
                       f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
@@ -438,19 +531,20 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     elif est.relative > settings.tolerance:
         warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
                       f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
-    return _solution(state, solved, est, src_state, passes, iterations, capped, t_start, history)
+    return _solution(state, solved, gathered, est, passes, iterations, capped, t_start, history)
 
 
-def _solution(state, solved, est, src_state, passes, iterations, capped, t_start, history):
+def _solution(state, solved, gathered, est, passes, iterations, capped, t_start, history):
     from .solution import Solution
 
     scene, settings, nodes = state.scene, state.settings, state.nodes
     leaves = solved.leaves
     system = solved.system
-    b_leaf = solved.b_leaf
-    h_leaf = system.gather(b_leaf) + state.direct[leaves]
+    h_leaf = gathered.irradiance + state.direct[leaves]
+    b_leaf = np.maximum(system.emission + system.rho * gathered.irradiance, 0.0)
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
-    err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + est.direct / nodes.area[leaves]
+    err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
+        (est.direct + gathered.noise_power) / nodes.area[leaves]
     area_leaf = nodes.area[leaves]
     mean_b = float((area_leaf[:, None] * b_leaf).sum() / max(area_leaf.sum() * b_leaf.shape[1], 1e-300)) or 1e-300
     state.timing["total"] = time.perf_counter() - t_start
@@ -489,20 +583,7 @@ def _solution(state, solved, est, src_state, passes, iterations, capped, t_start
         "detail_leaves": 0,
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
-    view = _LeafView(nodes, state.surface.normal)
-    return Solution.from_solve(scene, view, leaves, b_leaf, h_leaf, err_leaf, stats, detail=None)
-
-
-class _LeafView:
-    """The two arrays Solution.from_solve reads: ``elements.verts``/``elements.patch`` and
-    ``patch_normal``."""
-
-    def __init__(self, nodes: Nodes, patch_normal: np.ndarray):
-        self.elements = _Elements(nodes.poly[:, :3], np.maximum(nodes.patch, 0))
-        self.patch_normal = patch_normal
-
-
-@dataclass
-class _Elements:
-    verts: np.ndarray
-    patch: np.ndarray
+    patch = nodes.patch[leaves]
+    return Solution.from_arrays(scene, leaf_vertices=nodes.poly[leaves, :3], leaf_patch=patch,
+                                leaf_normal=state.surface.normal[patch], leaf_radiosity=b_leaf,
+                                leaf_irradiance=h_leaf, leaf_error=err_leaf, stats=stats)

@@ -3,12 +3,13 @@
 Every link r <- s carries its transfer F (form factor with visibility) and two errors in
 form-factor units, both from the receiver points of its wave (transfer.py):
 
-* ``err_ff``: how far the one value F is from what the patches below r should get.
-  On a face cluster (it pushes F to several input triangles) the mean absolute deviation
-  of the point transfers G_i v_i from F; on a triangle (whose mean is what counts) the
-  quadrature error of the unoccluded part: the difference between the degree-5 rule and
-  an embedded degree-2 rule on its outer six points, about C (h/d)^3 for a receiver of
-  radius h at distance d, scaled by (h/d)^3 to the degree-5 rule's C (h/d)^6 (capped at 1). A face-cluster source's rectangle stands
+* ``err_ff``: the error of F as the receiver's *mean*. On a face cluster, the standard
+  error of its K area-stratified point transfers G_i v_i (the variation of the light over
+  the cluster is not an error: the final gather in core.py gives every input triangle below
+  it its own share); on a triangle, the quadrature error of the unoccluded part: the
+  difference between the degree-5 rule and an embedded degree-2 rule on its outer six
+  points, about C (h/d)^3 for a receiver of radius h at distance d, scaled by (h/d)^3 to
+  the degree-5 rule's C (h/d)^6 (capped at 1). A face-cluster source's rectangle stands
   in for its triangles scaled by its fill ratio: F (1 - fill) more.
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
   over the link's n rays (zero when all rays agree).
@@ -16,10 +17,12 @@ form-factor units, both from the receiver points of its wave (transfer.py):
 As power (W), over the receiver's area A_r with the receiver's largest reflectance and
 the source's brightest channel (``power_errors``):
 
-    receiver term  A_r rho_r B_s (err_ff + sqrt(2/pi) vis_std)
+    receiver term  A_r rho_r B_s (p err_ff + sqrt(2/pi) vis_std)
     source term    A_r rho_r F dev_s min(1, 2 R_s / d)
 
-where dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
+where p is 1 on triangles and, on face clusters, the share of an error in the cluster's
+mean that reaches the output (``SourceState.propagation``: it is reflected once more
+elsewhere, then amplified by interreflection), and dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
 source's mean; the kernel's relative change across the source, at most its size over its
 distance, turns that into a transfer error). A volume-cluster source has no exact
 transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
@@ -118,8 +121,12 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     order_gain = np.minimum(1.0, (h / np.maximum(d, 1e-12 * np.maximum(h, 1e-300))) ** 3)
     low = (g * EMBEDDED_WEIGHTS[None]).sum(axis=1)
     quad = np.abs(ff_unocc - low) * order_gain * vis
-    spread = (w * np.abs(pt.gv_point.astype(np.float64) - ff[:, None])).sum(axis=1)
-    err = np.where(face_recv, spread, quad)
+    dev = pt.gv_point.astype(np.float64) - ff[:, None]
+    spread = (w * np.abs(dev)).sum(axis=1)
+    # a face cluster's mean from its K area-stratified points: their standard error (the
+    # variation of the light over the cluster is not an error: the final gather resolves it
+    # on the input triangles; only the cluster's mean enters the solution)
+    err = np.where(face_recv, np.sqrt((w * dev * dev).sum(axis=1) / RECEIVER_POINTS), quad)
     # an end that straddles the other's plane: the receiver's points may all miss (or all
     # see) a source that part of it sees; its bounding-sphere form factor bounds the error
     straddle = (_straddles(nodes, recv, src) | _straddles(nodes, src, recv)) & (nodes.kind[src] != VOLUME)
@@ -130,7 +137,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
         err[k] = np.maximum(err[k], np.maximum(bound - ff[k], 0.0))
     src_face = nodes.kind[src] == FACE
     err = err + np.where(src_face, ff * (1.0 - nodes.fill[src]), 0.0)
-    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
     n_rays = RECEIVER_POINTS * rays.astype(np.float64)
     vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(vis * (1 - vis), 0, 0.25) / n_rays), 0.0)
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
@@ -139,10 +146,15 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
 
 
 def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(M,) bool: face cluster a has patches on both sides of (planar) b's plane."""
-    h = np.einsum("mc,mc->m", nodes.normal[b], nodes.center[a] - nodes.poly[b, 0])
-    return (nodes.kind[a] == FACE) & (np.abs(h) < nodes.radius[a]) & (nodes.kind[b] != VOLUME) & \
-        (np.abs(np.einsum("mc,mc->m", nodes.normal[a], nodes.normal[b])) < 1 - 1e-6)
+    """(M,) bool: face cluster a has patches on both sides of (planar) b's plane.
+
+    A face cluster lies inside its form-factor rectangle (nodes.Nodes.poly), so the signed
+    heights of the rectangle's corners over b's plane bound those of its patches; touching
+    the plane (a floor against a wall) is not straddling it."""
+    h = np.einsum("mc,mkc->mk", nodes.normal[b], nodes.poly[a] - nodes.poly[b, 0][:, None])
+    tol = 1e-6 * np.maximum(nodes.radius[a], 1e-300)
+    return (nodes.kind[a] == FACE) & (h.min(axis=1) < -tol) & (h.max(axis=1) > tol) & \
+        (nodes.kind[b] != VOLUME) & (np.abs(np.einsum("mc,mc->m", nodes.normal[a], nodes.normal[b])) < 1 - 1e-6)
 
 
 @dataclass
@@ -157,6 +169,7 @@ class SourceState:
     b_max: np.ndarray
     b_max_below: np.ndarray
     dev: np.ndarray
+    propagation: float = 1.0
 
     def grow(self, nodes: Nodes) -> "SourceState":
         """Children made since: their parent's values (deviation halved) until the next solve."""
@@ -166,14 +179,29 @@ class SourceState:
         par = nodes.parent[n_old:]
         return SourceState(np.concatenate([self.b_max, self.b_max[par]]),
                            np.concatenate([self.b_max_below, self.b_max_below[par]]),
-                           np.concatenate([self.dev, 0.5 * self.dev[par]]))
+                           np.concatenate([self.dev, 0.5 * self.dev[par]]), self.propagation)
+
+
+def face_mean_errors(nodes: Nodes, links: Links, state: SourceState) -> np.ndarray:
+    """(M,) W: the part of the receiver term that is the error of the receiver's mean
+    (err_ff), as it reaches the output.
+
+    A face cluster's own triangles get their light from the final gather (core.py), so an
+    error in the cluster's mean reaches the output only once reflected elsewhere, and then
+    with every further bounce: ``state.propagation`` (mean reflectance times the solution's
+    interreflection gain)."""
+    r, s = links.recv, links.src
+    e = nodes.area[r] * nodes.rho_max[r] * state.b_max[s] * links.err_ff
+    return np.where(nodes.kind[r] == FACE, state.propagation * e, e)
 
 
 def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.ndarray, np.ndarray]:
     """(receiver term, source term) of every link, W (see module docstring)."""
     r, s = links.recv, links.src
     scale = nodes.area[r] * nodes.rho_max[r]
-    receiver = scale * state.b_max[s] * (links.err_ff + EXPECTED_ABS * links.vis_std)
+    # a face cluster's own triangles get their light from the final gather (core.py): an
+    # error in the cluster's mean reaches the output only once reflected again elsewhere
+    receiver = scale * state.b_max[s] * EXPECTED_ABS * links.vis_std + face_mean_errors(nodes, links, state)
     dist = np.linalg.norm(nodes.center[r] - nodes.center[s], axis=1)
     kernel_change = np.minimum(1.0, 2.0 * nodes.radius[s] / np.maximum(dist, 1e-300))
     source = scale * links.ff * state.dev[s] * kernel_change

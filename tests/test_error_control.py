@@ -207,4 +207,6 @@ def test_error_lightmap_matches_the_per_triangle_error_map(cornell, tmp_path):
     # the floor's UVs cover the unit square, so the texel mean is its area mean
     np.testing.assert_allclose(maps["floor"].reshape(-1, 3).mean(0), expected, rtol=0.05)
     written = export.write_lightmaps(sol, tmp_path, resolution=16, error=True)
-    assert (tmp_path / "floor.error.exr").exists() and len(written) == 2 * len(maps)
+    # a radiosity and an error map per shape, and the lightmaps.csv index
+    assert (tmp_path / "floor.error.exr").exists() and len(written) == 2 * len(maps) + 1
+    assert (tmp_path / "lightmaps.csv").exists()
