@@ -25,10 +25,17 @@ until the estimate is at or below ``tolerance``. Elements never split below
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
+
+import numpy as np
 
 from .errors import SettingsError
 
+#: Most rays per link: one link's lanes must fit a Dr.Jit launch (arrays.MAX_LANES = 2^22)
+#: many times over, so that a wave never holds one link alone.
+MAX_SAMPLES_PER_LINK = 1 << 16
 SOLVERS = ("gmres", "gauss-seidel", "jacobi")
 CORES = ("hierarchical", "legacy")
 SWITCHES = ("auto", "on", "off")
@@ -134,6 +141,7 @@ class Settings:
     core: str = "legacy"
 
     def __post_init__(self) -> None:
+        self._check_types()
         if not (0.0 < float(self.tolerance) < 1.0):
             raise SettingsError(
                 f"tolerance={self.tolerance!r} is outside (0, 1); give the target relative error, e.g. 0.01"
@@ -141,6 +149,11 @@ class Settings:
         if int(self.samples_per_link) != self.samples_per_link or self.samples_per_link < 1:
             raise SettingsError(
                 f"samples_per_link={self.samples_per_link!r} must be an integer >= 1 (e.g. 16)"
+            )
+        if self.samples_per_link > MAX_SAMPLES_PER_LINK:
+            raise SettingsError(
+                f"samples_per_link={self.samples_per_link!r} is more than one link's rays can hold in a Dr.Jit "
+                f"launch of bounded memory; give at most {MAX_SAMPLES_PER_LINK} (a lower tolerance refines instead)"
             )
         if self.solver not in SOLVERS:
             raise SettingsError(f"solver={self.solver!r} is unknown; choose one of {', '.join(SOLVERS)}")
@@ -170,6 +183,25 @@ class Settings:
                                 "'tcp://10.0.0.5:8786'")
         if int(self.seed) != self.seed or self.seed < 0:
             raise SettingsError(f"seed={self.seed!r} must be a non-negative integer")
+
+    def _check_types(self) -> None:
+        """Numbers must be real numbers (not strings, booleans, NaN or infinities), integers
+        integral, switches booleans: the message names the field and the fix."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            kind = str(f.type)
+            if value is None and "None" in kind:
+                continue
+            if kind.startswith("bool"):
+                if not isinstance(value, (bool, np.bool_)):
+                    raise SettingsError(f"{f.name}={value!r} must be True or False")
+            elif kind.startswith(("int", "float")):
+                if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                    raise SettingsError(f"{f.name}={value!r} must be a number, e.g. {f.name}={f.default!r}")
+                if not math.isfinite(float(value)):
+                    raise SettingsError(f"{f.name}={value!r} must be finite, e.g. {f.name}={f.default!r}")
+                if kind.startswith("int") and float(value) != int(value):
+                    raise SettingsError(f"{f.name}={value!r} must be an integer, e.g. {f.name}={f.default!r}")
 
     def replace(self, **changes) -> "Settings":
         """Copy with some fields changed (validated again)."""
