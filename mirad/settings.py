@@ -91,8 +91,9 @@ class Settings:
         Safety cap on the element count; refinement stops there with a warning.
     max_links : int or None, default None
         Safety cap on the link count (refinement stops before a wave would pass it, with a
-        warning); None: what half the machine's memory holds at ``solver.LINK_PEAK_BYTES``
-        per link (a solve's peak memory per link, wave temporaries included).
+        warning naming the estimate reached); None: what 2 GiB (``solver.DEFAULT_LINK_MEMORY``,
+        or half the machine's memory if less) holds at ``solver.LINK_PEAK_BYTES`` per link (a
+        solve's peak memory per link, wave temporaries included): about 5 M links.
     clustering : str, default "auto"
         "on": every patch starts linked to the root of a bounding-volume hierarchy over the
         patches, opened by refinement (links grow ~linearly); "off": all facing pairs of

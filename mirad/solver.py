@@ -492,13 +492,19 @@ def solve_problem(scene: Scene, settings: Settings):
 LINK_PEAK_BYTES = 400
 
 
+#: Memory a default solve may use for its links (bytes): well under a laptop's memory, so a
+#: default solve's peak is predictable; ``Settings.max_links`` raises it.
+DEFAULT_LINK_MEMORY = 2 << 30
+
+
 def _memory_max_links() -> int:
-    """Links that half the machine's physical memory holds at LINK_PEAK_BYTES each."""
+    """Links that DEFAULT_LINK_MEMORY (or half the machine's physical memory, if less) holds
+    at LINK_PEAK_BYTES each."""
     try:
         memory = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):      # no sysconf (Windows): 16 GiB
         memory = 16 << 30
-    return max(1, int(0.5 * memory / LINK_PEAK_BYTES))
+    return max(1, int(min(0.5 * memory, DEFAULT_LINK_MEMORY) / LINK_PEAK_BYTES))
 
 
 #: Most rounds of (refinement passes, fresh re-estimate) in one solve.
