@@ -63,6 +63,8 @@ def write_ply(solution, path, *, mesh: str = "input", exposure: str = "scene") -
         emitting = _vertex_mean(solution, solution.triangle_emission).max(1) > 0
     else:
         verts, faces, b, h, err, emitting = refined_mesh(solution)
+    if solution.scene is not None:
+        verts = solution.scene.to_user(verts)    # a scene far from the origin is solved moved
     trimesh_mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
     trimesh_mesh.visual.vertex_colors = display_colors(b, exclude=emitting if exposure == "scene" else None)
     for c, name in enumerate(_CHANNELS[: b.shape[1]]):

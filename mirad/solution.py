@@ -367,6 +367,8 @@ class Solution:
             raise ValueError(f"points and normals must both be (P, 3) arrays; got {points.shape} and {normals.shape}")
         if not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
             raise ValueError("points and normals must be finite")
+        # points are in the user's coordinates; a scene far from the origin is solved moved
+        points = scene.to_internal(points)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         if np.any(length == 0):
             raise ValueError("every normal must be non-zero")
