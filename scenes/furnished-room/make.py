@@ -19,6 +19,8 @@ from meshgen import (area_emitter, box, cells, diffuse, grid, merge, ply_shape, 
 
 L, W, H = 6.0, 4.0, 2.8
 CELL = 0.4
+#: Set-back (m) of a part standing on or between others, so that no edge is shared by > 2 faces.
+INSET = 0.01
 
 
 def room():
@@ -45,8 +47,11 @@ def table(x, y, *, length=1.6, depth=0.9, height=0.74, top=0.05, leg=0.06):
 
 
 def chair(x, y, angle, *, seat=0.45, height=0.45, leg=0.04):
+    # the back stands on the seat 1 cm in from its sides and rear, without a bottom face: a back
+    # flush with the seat's edges would put four faces on one edge (non-manifold)
     parts = [box((-seat / 2, -seat / 2, height - 0.04), (seat / 2, seat / 2, height)),
-             box((-seat / 2, seat / 2 - 0.04, height), (seat / 2, seat / 2, height + 0.45))]
+             box((-seat / 2 + INSET, seat / 2 - 0.04 - INSET, height), (seat / 2 - INSET, seat / 2 - INSET, height + 0.45),
+                 skip=("-z",))]
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = sx * (seat / 2 - 0.03), sy * (seat / 2 - 0.03)
@@ -56,12 +61,15 @@ def chair(x, y, angle, *, seat=0.45, height=0.45, leg=0.04):
 
 
 def shelf(x, y, angle, *, width=1.0, depth=0.35, height=1.9, boards=5, t=0.025):
+    # the back sits between the sides 1 cm in from their rear edges, without the faces that touch
+    # them: flush with the sides' rear it would put three or four faces on one edge (non-manifold)
+    back = depth - INSET
     parts = [box((-width / 2, 0, 0), (-width / 2 + t, depth, height), skip=("-z",)),
              box((width / 2 - t, 0, 0), (width / 2, depth, height), skip=("-z",)),
-             box((-width / 2 + t, depth - t, 0), (width / 2 - t, depth, height), skip=("-z",))]
+             box((-width / 2 + t, back - t, 0), (width / 2 - t, back, height), skip=("-z", "-x", "+x"))]
     for k in range(boards):
         z = 0.05 + k * (height - 0.1) / (boards - 1)
-        parts.append(box((-width / 2 + t, 0, z), (width / 2 - t, depth - t, z + t)))
+        parts.append(box((-width / 2 + t, 0, z), (width / 2 - t, back - t, z + t)))
     return transform(merge(parts), rotate=[((0, 0, 1), angle)], translate=(x, y, 0))
 
 
