@@ -41,7 +41,9 @@ def test_probe_at_element_centroids_matches_solution_within_tolerance(cornell_fi
     sol = cornell_fine
     area = sol.leaf_area
     rng = np.random.default_rng(1)
-    pick = rng.choice(len(area), 300, p=area / area.sum())
+    # 150 leaves x 4 probes x every leaf x 8 rays is ~70 M rays (300 leaves took a minute here);
+    # measured over pick seeds 1-4: L1 0.5-1.3 % against a bound of 2.4 %
+    pick = rng.choice(len(area), 150, p=area / area.sum())
     v = sol.leaf_vertices[pick]
     m01, m12, m20 = (v[:, 0] + v[:, 1]) / 2, (v[:, 1] + v[:, 2]) / 2, (v[:, 2] + v[:, 0]) / 2
     sub = np.stack([(v[:, 0] + m01 + m20) / 3, (v[:, 1] + m12 + m01) / 3, (v[:, 2] + m20 + m12) / 3,

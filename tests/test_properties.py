@@ -9,7 +9,7 @@ translations) and uniform power-of-two scaling, and determinism for a fixed seed
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings as hyp_settings, strategies as st
+from hypothesis import HealthCheck, Phase, given, settings as hyp_settings, strategies as st
 
 import mirad
 from conftest import RECIPROCITY_REL
@@ -21,6 +21,8 @@ import mitsuba as mi
 T = mi.ScalarTransform4f
 EXAMPLES = hyp_settings(max_examples=6, deadline=None, derandomize=True,
                         suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+#: A strict xfail needs only its first failing example; shrinking it took 15 s and asserts nothing more.
+KNOWN_FAILURE = hyp_settings(EXAMPLES, phases=[Phase.explicit, Phase.reuse, Phase.generate])
 
 dyadic = st.integers(4, 16).map(lambda k: k / 8)                 # 0.5 .. 2 m in steps of 1/8
 rho = st.sampled_from([0.0, 0.25, 0.5, 0.75, 0.875])
@@ -116,7 +118,7 @@ def test_power_of_two_scaling_leaves_the_solution_bitwise_unchanged(box, scale):
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (llvm_ad_rgb): same element counts, but up to 1.35e-6 "
                    "relative on 3 of 48 triangles (turn + shift; 90/180 degree turns alone 1e-7..6e-7, shifts "
                    "alone 1.5e-7..6e-7): float32 evaluation order of the moved coordinates")
-@EXAMPLES
+@KNOWN_FAILURE
 @given(boxes(), st.sampled_from([0, 90, 180, 270]), st.tuples(*[st.integers(-8, 8).map(float)] * 3))
 def test_exact_rigid_motion_leaves_the_solution_unchanged(box, turn, shift):
     # 90 degree turns and integer shifts of dyadic coordinates are exact in float32, so the moved scene
