@@ -38,13 +38,14 @@ import os
 import time
 import uuid
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import EnvironmentProblem, SettingsError
 
-__all__ = ["DaskEvaluator", "distributed_reference"]
+__all__ = ["DaskEvaluator", "distributed_reference", "check_main_guard", "unguarded_main_line"]
 
 #: Fewest links per batch (smaller waves go out as fewer batches).
 MIN_BATCH = 4096
@@ -227,6 +228,62 @@ def _reference_task(key: _SceneKey, triangles, samples: int, seed: int, max_dept
 
 # ------------------------------------------------------------------------------------------
 # Client side
+def _is_main_guard(node) -> bool:
+    """Whether an ``ast`` statement is ``if __name__ == "__main__":``."""
+    import ast
+
+    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare):
+        return False
+    sides = [node.test.left, *node.test.comparators]
+    return (any(isinstance(x, ast.Name) and x.id == "__name__" for x in sides)
+            and any(isinstance(x, ast.Constant) and x.value == "__main__" for x in sides))
+
+
+def unguarded_main_line(frame=None) -> tuple[str, int] | None:
+    """(script, line) when a script's own top-level code, outside ``if __name__ == "__main__":``,
+    leads to this call; None otherwise (a guarded call, an interactive session, a notebook).
+
+    Local workers are spawned processes that import the script again: unguarded, the import
+    asks for workers once more, and each worker dies with a long multiprocessing traceback.
+    """
+    import ast
+    import inspect
+    import sys
+
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if not path or not str(path).endswith(".py"):
+        return None
+    frame = frame or inspect.currentframe()
+    line = None
+    while frame is not None:        # the outermost frame of the script's own top-level code
+        if frame.f_globals.get("__name__") == "__main__" and frame.f_code.co_name == "<module>":
+            line = frame.f_lineno
+        frame = frame.f_back
+    if line is None:
+        return None
+    try:
+        tree = ast.parse(Path(path).read_text(encoding="utf-8", errors="replace"))
+    except (OSError, SyntaxError, ValueError):
+        return None
+    for node in tree.body:
+        if node.lineno <= line <= (node.end_lineno or node.lineno):
+            return None if _is_main_guard(node) else (str(path), line)
+    return None
+
+
+def check_main_guard(workers: int) -> None:
+    """SettingsError naming the script and the fix when local workers would re-run it (see
+    ``unguarded_main_line``); nothing is started."""
+    found = unguarded_main_line()
+    if found is not None:
+        script, line = found
+        raise SettingsError(f"workers={workers}: {script}, line {line} asks for worker processes from the "
+                            "script's top level; each worker imports the script again and would ask for "
+                            "workers itself; put the script's code under 'if __name__ == \"__main__\":' "
+                            "(or leave workers at 0)")
+
+
 # ------------------------------------------------------------------------------------------
 
 class DaskEvaluator:
@@ -252,6 +309,7 @@ class DaskEvaluator:
                                     "check the address or start one with 'dask scheduler'") from None
             threads = 0
         else:
+            check_main_guard(int(workers))
             cores = os.cpu_count() or 1
             threads = max(1, cores // max(int(workers), 1))
             self._cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,

@@ -101,3 +101,23 @@ def test_bad_distributed_settings(bad):
 def test_cli_rejects_negative_workers(tmp_path):
     out = run_cli("solve", CORNELL, "--workers", "-2", "-o", tmp_path / "s.npz", "--quiet")
     assert out.returncode == 2 and "workers=-2" in out.stderr
+
+
+def test_a_script_without_the_main_guard_is_told_the_fix(tmp_path):
+    """Local workers import the script again: unguarded top-level code is refused before any
+    process starts (it printed ~500 lines of multiprocessing tracebacks), a guarded one is not."""
+    import subprocess
+    import sys
+
+    call = f"mirad.solve({str(CORNELL)!r}, tolerance=0.5, workers=2, quiet=True)"
+    bad = tmp_path / "bad.py"
+    bad.write_text(f"import mirad\n{call}\n")
+    res = subprocess.run([sys.executable, str(bad)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1 and len(res.stderr.splitlines()) < 30
+    assert "bad.py, line 2" in res.stderr and "if __name__ == \"__main__\":" in res.stderr
+    assert "bootstrapping" not in res.stderr
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text(f"import mirad\nfrom mirad.distributed import unguarded_main_line\n\n\ndef main():\n"
+                       f"    return unguarded_main_line()\n\n\nif __name__ == \"__main__\":\n    print(main())\n")
+    res = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "None", res.stderr
