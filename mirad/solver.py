@@ -336,16 +336,68 @@ def uses_hierarchical_core(settings: Settings) -> bool:
             and settings.scheduler is None and settings.oracle == "kernel")
 
 
+def check_link_budget(scene: Scene, minimum: int, max_links: int, what: str) -> None:
+    """Say before solving when the link budget cannot hold a request.
+
+    ``minimum`` is the fewest links the solve holds before any refinement (``what`` says why).
+    Above ``max_links`` nothing fits: SettingsError naming the memory it would take and the fix.
+    Above half of it a warning: refining every initial link once replaces it by at least two
+    (a cluster opens into two children, an element splits into four), so refinement stops at
+    the cap before the tolerance.
+    """
+    from .errors import SettingsError
+
+    where = scene.source or "<scene>"
+
+    def size(links: int) -> str:
+        nbytes = links * LINK_PEAK_BYTES
+        return f"{nbytes / (1 << 30):.1f} GiB" if nbytes >= 1 << 30 else f"{nbytes / (1 << 20):.1f} MiB"
+
+    if minimum > max_links:
+        raise SettingsError(f"{where}: {what}: {minimum:,} links (about {size(minimum)} at "
+                            f"{LINK_PEAK_BYTES} B per link) before any refinement, more than "
+                            f"max_links={max_links:,}; raise max_links on a machine that holds it"
+                            + ("" if "facing" not in what else ", or solve with clustering='on' (links "
+                               "grow with the patches, not their pairs)"))
+    if 2 * minimum > max_links:
+        warnings.warn(f"{where}: {what}: {minimum:,} links before any refinement, and refining each once "
+                      f"needs at least {2 * minimum:,}, more than max_links={max_links:,}: refinement will "
+                      "stop at the cap well before the tolerance; raise max_links (about "
+                      f"{size(2 * minimum)} for one refinement) or solve a coarser mesh", stacklevel=3)
+
+
+def _facing_pair_count(prob) -> int:
+    """Ordered pairs of patches that face each other (the links a solve without clusters
+    starts with), counted in chunks of bounded memory."""
+    p = len(prob.patch_normal)
+    rows_per_chunk = max(1, _LINK_CHUNK // max(p, 1))
+    cols = np.arange(p)
+    count = 0
+    for start in range(0, p, rows_per_chunk):
+        rows = np.arange(start, min(p, start + rows_per_chunk))
+        r, s = np.repeat(rows, p), np.tile(cols, len(rows))
+        keep = r != s
+        count += int(prob.facing_pairs(r[keep], s[keep]).sum())
+    return count
+
+
 def solve_problem(scene: Scene, settings: Settings):
     """Run hierarchical radiosity on a loaded scene; returns a Solution."""
     from .solution import Solution
 
+    max_links = settings.max_links or _memory_max_links()
+    patches = len(scene.patch_tri)
+    # every patch receives its light through at least one link
+    check_link_budget(scene, patches, max_links, f"{patches:,} patches need one link each")
     if uses_hierarchical_core(settings):
         from .core import solve_hierarchical
 
-        return solve_hierarchical(scene, settings, settings.max_links or _memory_max_links())
+        return solve_hierarchical(scene, settings, max_links)
     t_start = time.perf_counter()
     prob = Problem(scene, settings)
+    if prob.clusters is None and 2 * patches * (patches - 1) > prob.max_links:   # else no pair count can pass
+        check_link_budget(scene, _facing_pair_count(prob), prob.max_links,
+                          f"without clusters every pair of the {patches:,} patches facing each other is linked")
     bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)
 
     # --- initial linking and first solve ------------------------------------------------------

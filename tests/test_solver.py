@@ -175,3 +175,18 @@ def test_link_cap_stops_refinement_with_a_warning_and_an_honest_estimate():
     assert sol.stats["estimated_error"] > 0.01
     with pytest.raises(mirad.errors.SettingsError, match="max_links"):
         make_settings(max_links=0)
+
+
+def test_a_request_the_link_budget_cannot_hold_is_told_before_solving():
+    """The Cornell box without clusters starts with 536 links (its 36 patches' facing pairs):
+    a cap below that is refused before any work, naming max_links and clustering; a cap below
+    twice that (one refinement of every link) is warned about up front; 36 patches need 36 links
+    whatever the clustering."""
+    path = SCENES / "cornell-box" / "scene.xml"
+    with pytest.raises(mirad.errors.SettingsError, match=r"536 links .* max_links=500; .*clustering='on'"):
+        mirad.solve(path, tolerance=0.2, max_links=500, quiet=True)
+    with pytest.raises(mirad.errors.SettingsError, match=r"36 patches need one link each: 36 links"):
+        mirad.solve(path, tolerance=0.2, max_links=30, clustering="on", quiet=True)
+    with pytest.warns(UserWarning, match=r"536 links before any refinement, and refining each once needs at "
+                                         r"least 1,072, more than max_links=1,000"):
+        mirad.solve(path, tolerance=0.2, max_links=1000, quiet=True)
