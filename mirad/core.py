@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
-from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, link_values, power_errors,
+from .refine import (EXPECTED_ABS, face_mean_errors, MAX_RAYS_PER_POINT, Links, SourceState, choose, link_values, power_errors,
                      refinement_threshold)
 from .scene import Scene
 from .settings import Settings
@@ -335,6 +335,7 @@ class Gathered:
 
     irradiance: np.ndarray
     noise_power: np.ndarray
+    iterations: int = 0          # of the solve on the gathered system
 
 
 #: Most (patch, link) pairs per final-gather wave (bounds its memory: ~100 B a pair).
@@ -358,47 +359,66 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     channels = state.channels
     n_patch = len(state.surface.verts)
     on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
-    # what the leaves got from face-cluster links (to be replaced by each patch's own)
-    face_links = sp.csr_matrix((links.ff[on_face].astype(np.float64), (links.recv[on_face], links.src[on_face])),
-                               shape=(len(nodes), len(nodes)))
-    h_face = solved.system.push @ (face_links @ solved.b_node)
     below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
     start = below.indptr[links.recv[on_face]]
     count = below.indptr[links.recv[on_face] + 1] - start
     pair_link = on_face[np.repeat(np.arange(len(on_face)), count)]
     offset = np.arange(len(pair_link)) - np.repeat(np.cumsum(count) - count, count)
     pair_patch = below.indices[np.repeat(start, count) + offset]
-    h_patch = np.zeros((n_patch, channels))
     var = np.zeros(n_patch)
     if state.buffers is None or state.buffers.size != len(nodes):
         state.buffers = NodeBuffers.upload(nodes)
     inner = 0.0
-    for a in range(0, len(pair_patch), GATHER_CHUNK):
-        recv, src = pair_patch[a:a + GATHER_CHUNK], links.src[pair_link[a:a + GATHER_CHUNK]]
-        t1 = time.perf_counter()
-        pt = evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=1,
-                      seed=state.settings.seed + 0x7E57, offset=state.offset)
-        inner += time.perf_counter() - t1
-        state.rays += pt.rays
-        w = nodes.recv_w[recv].astype(np.float64)
-        ff = (w * pt.gv).sum(axis=1)
-        ff_unocc = (w * pt.g).sum(axis=1)
-        b = solved.b_node[src]
-        for c in range(channels):
-            h_patch[:, c] += np.bincount(recv, weights=ff * b[:, c], minlength=n_patch)
-        vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
-        partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
-        v = np.where(partial, (ff_unocc * b.max(axis=1)) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * GATHER_RAYS), 0.0)
-        var += np.bincount(recv, weights=v, minlength=n_patch)
+    g_ff = np.zeros(len(pair_patch))
+    # pairs under a link whose own rays all agreed trace one ray per point, the others
+    # GATHER_RAYS (shadow edges are where the gather's noise is)
+    link_partial = (links.ff < links.ff_unocc) & (links.ff > 0)
+    rays_of_pair = np.where(link_partial[pair_link], GATHER_RAYS, 1)
+    for rays in (1, GATHER_RAYS):
+        group = np.flatnonzero(rays_of_pair == rays)
+        for a in range(0, len(group), GATHER_CHUNK):
+            idx = group[a:a + GATHER_CHUNK]
+            recv, src = pair_patch[idx], links.src[pair_link[idx]]
+            t1 = time.perf_counter()
+            pt = evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays,
+                          seed=state.settings.seed + 0x7E57, offset=state.offset)
+            inner += time.perf_counter() - t1
+            state.rays += pt.rays
+            w = nodes.recv_w[recv].astype(np.float64)
+            ff = (w * pt.gv).sum(axis=1)
+            ff_unocc = (w * pt.g).sum(axis=1)
+            g_ff[idx] = ff
+            b = solved.b_node[src].max(axis=1)
+            vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+            partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+            v = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
+            var += np.bincount(recv, weights=v, minlength=n_patch)
+    # the system again, with every face-cluster link replaced by its patches' own transfers
+    # (P, N): each patch then gathers from the sources' means what reaches its own points,
+    # and a cluster's mean, pulled from its patches, is theirs
+    n = len(nodes)
+    gathered = sp.csr_matrix((g_ff, (pair_patch, links.src[pair_link])), shape=(n_patch, n))
+    keep = np.flatnonzero(nodes.kind[links.recv] != FACE)
+    own = sp.csr_matrix((links.ff[keep].astype(np.float64), (links.recv[keep], links.src[keep])), shape=(n, n))
     patch_of = nodes.patch[leaves]
-    h_leaf = solved.system.gather(solved.b_leaf) - h_face + h_patch[patch_of]
+    to_patch = sp.csr_matrix((np.ones(len(leaves)), (np.arange(len(leaves)), patch_of)), shape=(len(leaves), n_patch))
+    system = solved.system
+    final = LeafSystem(sp.hstack([system.push, to_patch]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
+                       system.rho, system.emission)
+    t1 = time.perf_counter()
+    b, iterations, residual = solve_system(final, solved.b_leaf, method=state.settings.solver,
+                                           tol=state.settings.solver_tolerance,
+                                           max_iterations=state.settings.max_iterations)
+    solve_time = time.perf_counter() - t1
+    state.timing["solve"] += solve_time
+    h_leaf = final.gather(np.maximum(b, 0.0))
     rho = state.patch_rho[nodes.patch[leaves]].max(axis=1)
     # a patch's noise spread over its leaves by area
     share = nodes.area[leaves] / np.maximum(nodes.area[patch_of], 1e-300)
     noise = EXPECTED_ABS * rho * share * nodes.area[patch_of] * np.sqrt(var[patch_of])
     state.timing["transfer"] += inner
-    state.timing["gather"] += time.perf_counter() - t - inner
-    return Gathered(h_leaf, noise)
+    state.timing["gather"] += time.perf_counter() - t - inner - solve_time
+    return Gathered(h_leaf, noise, int(iterations))
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -466,7 +486,15 @@ class Estimate:
 def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
     """Stage estimate: summed link and direct-light power errors over A_total * mean(B - E)."""
     t = time.perf_counter()
-    receiver, src = power_errors(state.nodes, state.links, source)
+    nodes, links = state.nodes, state.links
+    # face clusters' mean errors are sampling errors of unbiased estimates: summed per
+    # receiver (its points are shared by its links), in quadrature over receivers
+    raw = face_mean_errors(nodes, links, source, weighted=False)
+    face = nodes.kind[links.recv] == FACE
+    per_recv = np.bincount(links.recv[face], weights=raw[face], minlength=len(nodes))
+    quad = float(np.sqrt(np.sum(per_recv ** 2)))
+    source.mean_weight = per_recv / quad if quad > 0 else np.zeros(len(nodes))
+    receiver, src = power_errors(nodes, links, source)
     d = direct_power_errors(state, solved.leaves) if state.scene.light_emitters else np.zeros(len(solved.leaves))
     mean = reflected_mean(state, solved)
     total = float(np.sum(receiver + src)) + float(d.sum())

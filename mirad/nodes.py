@@ -462,6 +462,11 @@ def _cluster_points(nodes: Nodes, ids: np.ndarray, surf: Surface, order, cum, pa
     for count, pts_name, nrm_name, w_name, salt in ((RECEIVER_POINTS, "recv_pts", "recv_nrm", "recv_w", 0x7A11),
                                                    (SOURCE_POINTS, "src_pts", "src_nrm", None, 0x3C6E)):
         u, v = _hammersley(count, ids.astype(np.int64) + (surf.seed << 20), salt)
+        # in the order of their place along the cluster's patches (tree order: neighbours
+        # in it are neighbours in space), so that successive points' differences measure
+        # how smooth the light over the cluster is (refine.link_values)
+        rank = np.argsort(u, axis=1)
+        u, v = np.take_along_axis(u, rank, axis=1), np.take_along_axis(v, rank, axis=1)
         lo, hi = nodes.lo[ids].astype(np.int64), nodes.hi[ids].astype(np.int64)
         target = cum[lo][:, None] + u * (cum[hi] - cum[lo])[:, None]
         j = np.clip(np.searchsorted(cum, target, side="right") - 1, lo[:, None], hi[:, None] - 1)

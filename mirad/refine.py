@@ -22,7 +22,8 @@ the source's brightest channel (``power_errors``):
 
 where p is 1 on triangles and, on face clusters, the share of an error in the cluster's
 mean that reaches the output (``SourceState.propagation``: it is reflected once more
-elsewhere, then amplified by interreflection), and dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
+elsewhere, then amplified by interreflection; the face clusters' sampling errors add in
+quadrature over receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
 source's mean; the kernel's relative change across the source, at most its size over its
 distance, turns that into a transfer error). A volume-cluster source has no exact
 transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
@@ -126,10 +127,18 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     # a face cluster's mean from its K area-stratified points: their standard error (the
     # variation of the light over the cluster is not an error: the final gather resolves it
     # on the input triangles; only the cluster's mean enters the solution)
-    err = np.where(face_recv, np.sqrt((w * dev * dev).sum(axis=1) / RECEIVER_POINTS), quad)
-    # an end that straddles the other's plane: the receiver's points may all miss (or all
-    # see) a source that part of it sees; its bounding-sphere form factor bounds the error
-    straddle = (_straddles(nodes, recv, src) | _straddles(nodes, src, recv)) & (nodes.kind[src] != VOLUME)
+    # (the points are stratified along the cluster's patches in their spatial order: the
+    # successive-difference estimator of a systematic sample's variance, which is the i.i.d.
+    # one for rough integrands and small where the light is smooth)
+    step = np.diff(pt.gv_point.astype(np.float64), axis=1)
+    k = RECEIVER_POINTS
+    stratified = np.sqrt((step * step).sum(axis=1) / (2.0 * (k - 1)) / k)
+    err = np.where(face_recv, stratified, quad)
+    # a receiver that straddles the source's plane and none of whose points saw the source:
+    # the part in front may still see it; its bounding-sphere form factor bounds the error.
+    # (Points that do see it sample the part in front like any other variation, and a
+    # source straddling the receiver's plane is clipped exactly at each point.)
+    straddle = _straddles(nodes, recv, src) & (nodes.kind[src] != VOLUME) & (ff_unocc <= 0)
     if straddle.any():
         k = np.flatnonzero(straddle)
         bound = sphere_form_factor_bound(nodes.center[recv[k]], nodes.radius[recv[k]], nodes.center[src[k]],
@@ -170,6 +179,7 @@ class SourceState:
     b_max_below: np.ndarray
     dev: np.ndarray
     propagation: float = 1.0
+    mean_weight: np.ndarray | None = None
 
     def grow(self, nodes: Nodes) -> "SourceState":
         """Children made since: their parent's values (deviation halved) until the next solve."""
@@ -179,20 +189,29 @@ class SourceState:
         par = nodes.parent[n_old:]
         return SourceState(np.concatenate([self.b_max, self.b_max[par]]),
                            np.concatenate([self.b_max_below, self.b_max_below[par]]),
-                           np.concatenate([self.dev, 0.5 * self.dev[par]]), self.propagation)
+                           np.concatenate([self.dev, 0.5 * self.dev[par]]), self.propagation,
+                           None if self.mean_weight is None else np.concatenate([self.mean_weight,
+                                                                                 self.mean_weight[par]]))
 
 
-def face_mean_errors(nodes: Nodes, links: Links, state: SourceState) -> np.ndarray:
+def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted: bool = True) -> np.ndarray:
     """(M,) W: the part of the receiver term that is the error of the receiver's mean
     (err_ff), as it reaches the output.
 
     A face cluster's own triangles get their light from the final gather (core.py), so an
     error in the cluster's mean reaches the output only once reflected elsewhere, and then
     with every further bounce: ``state.propagation`` (mean reflectance times the solution's
-    interreflection gain)."""
+    interreflection gain). The cluster's mean is an unbiased stratified estimate, so the
+    errors of different receivers are independent and add in quadrature: with ``weighted``,
+    each link's share is scaled by ``state.mean_weight`` of its receiver (e_r / sqrt(sum
+    e_r^2), set by core.estimate), so that the shares sum to the quadrature total."""
     r, s = links.recv, links.src
     e = nodes.area[r] * nodes.rho_max[r] * state.b_max[s] * links.err_ff
-    return np.where(nodes.kind[r] == FACE, state.propagation * e, e)
+    face = nodes.kind[r] == FACE
+    e = np.where(face, state.propagation * e, e)
+    if weighted and state.mean_weight is not None:
+        e = np.where(face, e * state.mean_weight[r], e)
+    return e
 
 
 def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.ndarray, np.ndarray]:
