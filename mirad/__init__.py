@@ -48,23 +48,24 @@ _register_plugin()
 
 def render(scene, solution=None, *, spp: int = default("spp"), seed: int = 0, smooth: bool = default("smooth"),
            final_gather: bool = default("final_gather"), gather_rays: int = default("gather_rays"), sensor: int = 0,
-           **options):
+           quiet: bool = True, **options):
     """Image (H, W, 3) float32 of a radiosity solution, radiance in W/(m^2 sr), from the scene's sensor.
 
     ``solution`` None solves the scene first with ``options`` (fields of mirad.Settings; ``seed``
     seeds both); the display options are those of mirad.options.RENDER (see mirad.display.render).
+    ``quiet`` hides the progress bars of the solve and of the final gather.
     """
     from .display import render as _render
 
     check_render(spp=spp, gather_rays=gather_rays, smooth=smooth, final_gather=final_gather)
     loaded = load_scene(scene, variant=options.get("variant"))
     if solution is None:
-        solution = solve(loaded, seed=seed, **options)
+        solution = solve(loaded, seed=seed, quiet=quiet, **options)
     elif options:
         raise SettingsError(f"options {sorted(options)} only apply when render() solves; "
                             "drop them or pass solution=None")
     return _render(loaded, solution, spp=spp, seed=seed, smooth=smooth, final_gather=final_gather,
-                   gather_rays=gather_rays, sensor=sensor)
+                   gather_rays=gather_rays, sensor=sensor, quiet=quiet)
 
 
 def solve(scene, *, quiet: bool = True, **options) -> Solution:

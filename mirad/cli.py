@@ -238,7 +238,7 @@ def _render(args) -> int:
     scene, sol = _solution(args, {k: v for k, v in plugin.items() if k not in shown}, scene=loaded)
     spp = display.pop("spp", _options.default("spp"))
     image = render(scene, sol, spp=spp, seed=args.seed if args.seed is not None else plugin.get("seed", 0),
-                   **display)
+                   quiet=args.quiet, **display)
     written = write_image(args.output, image, png=not args.no_png, exposure=args.exposure)
     if not args.quiet:
         print(f"wrote {', '.join(map(str, written))} ({image.shape[1]}x{image.shape[0]}, {spp} spp)")

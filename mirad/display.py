@@ -25,7 +25,7 @@ __all__ = ["render", "write_image", "check_spp", "srgb8"]
 
 def render(scene, solution, *, spp: int = default("spp"), seed: int = 0, smooth: bool = default("smooth"),
            final_gather: bool = default("final_gather"), gather_rays: int = default("gather_rays"),
-           sensor: int = 0) -> np.ndarray:
+           sensor: int = 0, quiet: bool = True) -> np.ndarray:
     """Image (H, W, 3) float32 of a radiosity solution, radiance in W/(m^2 sr), from the scene's sensor.
 
     Parameters
@@ -38,6 +38,7 @@ def render(scene, solution, *, spp: int = default("spp"), seed: int = 0, smooth:
     final_gather : one bounce of gathering from the solution at each pixel's hit point
     gather_rays : shadow rays per leaf element in the final gather
     sensor : index of the sensor in the scene
+    quiet : no progress bar (the final gather shows one unless quiet)
 
     >>> img = render(scene, sol, spp=1)   # doctest: +SKIP
     >>> img.shape                         # doctest: +SKIP
@@ -54,7 +55,7 @@ def render(scene, solution, *, spp: int = default("spp"), seed: int = 0, smooth:
         raise SettingsError(f"sensor={sensor} is out of range; the scene has {len(sensors)} sensor(s)")
     integrator = view_class()()
     integrator.smooth, integrator.final_gather = bool(smooth), bool(final_gather)
-    integrator.gather_rays, integrator.seed = int(gather_rays), int(seed)
+    integrator.gather_rays, integrator.seed, integrator.quiet = int(gather_rays), int(seed), bool(quiet)
     integrator.set_solution(loaded.mi_scene, solution)
     image = mi.render(loaded.mi_scene, integrator=integrator, sensor=sensor, spp=int(spp), seed=int(seed))
     return np.array(image, dtype=np.float32)[..., :3]

@@ -26,6 +26,7 @@ from .scene import load_scene
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
 #: Locator rays start this fraction of the scene diagonal above the surface point.
 LOCATE_OFFSET = 1e-4
@@ -244,8 +245,9 @@ class Shading:
             out.append(dr.lerp(dr.lerp(g(i0, j0), g(i0, j1), ty), dr.lerp(g(i1, j0), g(i1, j1), ty), tx))
         return out, has
 
-    def gathered_radiance(self, si, ray_d, leaf, found, active, *, rays: int, seed: int):
-        """One bounce of final gathering: (E + rho * H(x)) / pi with H gathered from all leaves."""
+    def gathered_radiance(self, si, ray_d, leaf, found, active, *, rays: int, seed: int, quiet: bool = True):
+        """One bounce of final gathering: (E + rho * H(x)) / pi with H gathered from all leaves
+        (a progress bar over the hit points unless ``quiet``)."""
         back = dr.dot(si.n, ray_d) > 0
         n = dr.select(back, -si.n, si.n)
         valid = found & active
@@ -258,7 +260,9 @@ class Shading:
         result = np.zeros((width, 3))
         idx = np.flatnonzero(mask)
         if len(idx):
-            h = self.solution.irradiance_at(pts[idx], nrm[idx], rays=rays, seed=seed)
+            with tqdm(total=len(idx), desc="final gather", unit="point", unit_scale=True, disable=quiet,
+                      leave=False) as bar:
+                h = self.solution.irradiance_at(pts[idx], nrm[idx], rays=rays, seed=seed, progress=bar.update)
             if h.shape[1] == 1:
                 h = np.repeat(h, 3, axis=1)
             result[idx] = (self.leaf_emission[lf[idx]] + self.leaf_rho[lf[idx]] * h) / np.pi
@@ -284,7 +288,8 @@ def _make_view_class():
         """Shows the solution set for a scene (``set_solution``): each camera ray is traced by
         Mitsuba and the pixel shows the radiance B/pi of the leaf element under its hit point,
         smooth or flat, optionally with one bounce of final gathering. ``smooth``,
-        ``final_gather``, ``gather_rays`` and ``seed`` are plain attributes."""
+        ``final_gather``, ``gather_rays``, ``seed`` and ``quiet`` (no final-gather progress bar)
+        are plain attributes."""
 
         def __init__(self, props=None):
             super().__init__(mi.Properties("radiosity") if props is None else props)
@@ -292,6 +297,7 @@ def _make_view_class():
             self.final_gather = False
             self.gather_rays = 4
             self.seed = 0
+            self.quiet = True
             self._cache = {}  # id(mi.Scene) -> (mi.Scene, Shading)
 
         # --- the solution of a scene -----------------------------------------------------
@@ -331,7 +337,7 @@ def _make_view_class():
             color, leaf, found = shading.radiance(si, ray.d, valid, smooth=self.smooth)
             if self.final_gather:
                 gathered = shading.gathered_radiance(si, ray.d, leaf, found, valid,
-                                                     rays=self.gather_rays, seed=self.seed)
+                                                     rays=self.gather_rays, seed=self.seed, quiet=self.quiet)
                 color = dr.select(found, gathered, color)
             color = dr.select(valid, color, 0.0)
             # ---------------- rays that leave the scene --------------------------

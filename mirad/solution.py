@@ -350,12 +350,13 @@ class Solution:
             raise KeyError(f"no shape with id {shape_id!r}; ids are {self.shape_ids}") from None
 
     # --- queries ---------------------------------------------------------------------------------
-    def irradiance_at(self, points, normals, *, rays: int = 4, seed: int = 0) -> np.ndarray:
+    def irradiance_at(self, points, normals, *, rays: int = 4, seed: int = 0, progress=None) -> np.ndarray:
         """Irradiance (P, C), W/m^2, at points (P, 3) facing normals (P, 3).
 
         A local gather over every leaf element of the solution (Lambert form factor to the
         leaf times its radiosity, with ``rays`` shadow rays per leaf), plus the direct light
-        of point, spot, directional and environment emitters.
+        of point, spot, directional and environment emitters. ``progress``: optional callable
+        given the number of points gathered after each launch (e.g. a tqdm bar's ``update``).
         """
         from .emitters import direct_irradiance
         from .visibility import Geometry, gather_at_points
@@ -377,7 +378,8 @@ class Solution:
         center, axis, radius = self.triangle_curve
         geo = Geometry.upload(self.leaf_vertices, self.leaf_normal, center[tri], axis[tri], radius[tri],
                               scene.diagonal)
-        h = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed)
+        h = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed,
+                             progress=progress)
         if scene.light_emitters:
             # a tiny triangle around each point stands in for the point
             r = 1e-7 * scene.diagonal

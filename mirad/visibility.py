@@ -393,12 +393,13 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
 # ------------------------------------------------------------------------------------------
 
 def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geometry,
-                     radiosity: np.ndarray, *, rays: int, seed: int) -> np.ndarray:
+                     radiosity: np.ndarray, *, rays: int, seed: int, progress=None) -> np.ndarray:
     """Irradiance (P, C), W/m^2, at points (P, 3) with normals (P, 3) from every leaf.
 
     H(x) = sum_l B_l * F(dA_x -> leaf l) * v(x, l), with Lambert's analytic form factor
     and v the fraction of ``rays`` stratified shadow rays from x to leaf l that arrive.
-    ``geo`` holds the leaves only; ``radiosity`` is (L, C).
+    ``geo`` holds the leaves only; ``radiosity`` is (L, C). ``progress``, if given, is called
+    with the number of points finished after every launch (it does not change the result).
     """
     n_pts, n_leaf = len(points), geo.size
     channels = radiosity.shape[1]
@@ -434,4 +435,6 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         for c in range(channels):
             h = dr.block_sum(weight * dr.gather(mi.Float, b_dr[c], leaf), n_leaf * rays)
             out[start:stop, c] = h.numpy()
+        if progress is not None:
+            progress(m)
     return out

@@ -185,11 +185,13 @@ def test_merged_scene_shows_the_leaf_under_each_pixel(xml_path, plugin_scene):
     assert np.allclose(image[floor][same], sol.leaf_radiosity[leaves[0][same]] / np.pi, rtol=1e-4)
 
 
-def test_final_gather_agrees_with_the_solution_on_average(xml_path):
+def test_final_gather_agrees_with_the_solution_on_average(xml_path, capsys):
     scene = mirad.load_scene(str(xml_path))
     sol = mirad.solve(scene, tolerance=0.1)
     flat = mirad.render(scene, sol, spp=1, smooth=False)
-    gathered = mirad.render(scene, sol, spp=1, final_gather=True, gather_rays=4)
+    capsys.readouterr()
+    gathered = mirad.render(scene, sol, spp=1, final_gather=True, gather_rays=4, quiet=False)
+    assert "final gather" in capsys.readouterr().err         # its progress bar (the CLI's unless --quiet)
     points, ids = camera_hits(scene.mi_scene, OFFSETS)
     floor = np.all(ids == "floor", axis=0)
     w = footprints(points)[floor][:, None]
