@@ -12,7 +12,8 @@ import sys
 _COMMON = ("variant", "quiet")
 
 
-def _parser() -> argparse.ArgumentParser:
+def parser() -> argparse.ArgumentParser:
+    """The ``mirad`` argument parser, every command's options built from ``mirad.options``."""
     from mirad import options as _options
 
     parser = argparse.ArgumentParser(prog="mirad", description="Hierarchical radiosity for Mitsuba 3 scenes.")
@@ -323,6 +324,15 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"mirad: warning: {message}", file=sys.stderr if file is None else file)
 
 
+def command_options(command: str) -> dict:
+    """{dest: argparse.Action} of one command's options (``mirad COMMAND --help`` lists the same)."""
+    top = parser()
+    commands = next(a for a in top._actions if a.dest == "command")     # the subparsers action
+    if command not in commands.choices:
+        raise ValueError(f"unknown command {command!r}; choose one of {', '.join(commands.choices)}")
+    return {a.dest: a for a in commands.choices[command]._actions}
+
+
 def main(argv=None) -> int:
     import warnings
 
@@ -332,7 +342,7 @@ def main(argv=None) -> int:
     except Exception as exc:  # pragma: no cover - broken installation
         print(f"mirad: error: cannot import mirad ({exc})", file=sys.stderr)
         return 2
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     warnings.showwarning = _show_warning
     raise_on_sigterm()
     try:

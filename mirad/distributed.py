@@ -45,7 +45,7 @@ import numpy as np
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import EnvironmentProblem, SettingsError
 
-__all__ = ["DaskEvaluator", "distributed_reference", "check_main_guard", "unguarded_main_line"]
+__all__ = ["DaskEvaluator", "distributed_reference", "check_main_guard", "unguarded_main_line", "chunk_seed"]
 
 #: Fewest links per batch (smaller waves go out as fewer batches).
 MIN_BATCH = 4096
@@ -401,7 +401,7 @@ class DaskEvaluator:
         t = scene.triangle_count
         starts = range(0, t, int(chunk))
         futures = [self.client.submit(_reference_task, self.key, np.arange(a, min(t, a + chunk)),
-                                      int(samples_per_triangle), _chunk_seed(seed, k), int(max_depth), method,
+                                      int(samples_per_triangle), chunk_seed(seed, k), int(max_depth), method,
                                       pure=False)
                    for k, a in enumerate(starts)]
         t0 = time.perf_counter()
@@ -426,7 +426,9 @@ class DaskEvaluator:
         self.close()
 
 
-def _chunk_seed(seed: int, chunk: int) -> int:
+def chunk_seed(seed: int, chunk: int) -> int:
+    """The seed of chunk ``chunk`` of a distributed reference with seed ``seed`` (31 bits), so a
+    chunk can be recomputed in process with ``triangle_reference(seed=chunk_seed(seed, k))``."""
     digest = hashlib.blake2b(f"mirad-ref:{seed}:{chunk}".encode(), digest_size=4).digest()
     return int.from_bytes(digest, "little") >> 1
 

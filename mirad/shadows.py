@@ -63,7 +63,7 @@ from .visibility import hash_u32, stratified, triangle_point
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "prefer_texture", "subdivision_cost",
+__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "point_form_factor", "prefer_texture", "subdivision_cost",
            "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear",
            "narrowest_penumbra"]
 
@@ -563,7 +563,7 @@ def _texel_ff(src: np.ndarray, rcv: np.ndarray, n: np.ndarray, r: int) -> np.nda
     """(M, R, R) unoccluded point form factor from each receiver texel centre (normal n) to its
     source."""
     pts = receiver_points(rcv, r).reshape(-1, 3)
-    return _point_ff(pts, np.repeat(n, r * r, axis=0), np.repeat(src, r * r, axis=0)).reshape(len(src), r, r)
+    return point_form_factor(pts, np.repeat(n, r * r, axis=0), np.repeat(src, r * r, axis=0)).reshape(len(src), r, r)
 
 
 def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64, **kwargs) -> ShadowTextures:
@@ -572,7 +572,7 @@ def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64,
                            resolution, **kwargs)
 
 
-def _point_ff(points: np.ndarray, normals: np.ndarray, source_verts: np.ndarray) -> np.ndarray:
+def point_form_factor(points: np.ndarray, normals: np.ndarray, source_verts: np.ndarray) -> np.ndarray:
     """(P,) unoccluded form factor dA(points, normals) -> source triangle or parallelogram (Dr.Jit),
     zero where the point lies behind the source."""
     x, nx = _v(points), _v(normals)

@@ -314,12 +314,16 @@ class Solution:
         idx = self.faces.ravel()
         w = np.repeat(self.triangle_area, 3)
         total = group_sum(idx, np.repeat(self.triangle_radiosity, 3, axis=0), n_vert, weights=w)
-        total += self._vertex_detail(n_vert)
+        total += self.vertex_detail
         return total / np.maximum(np.bincount(idx, weights=w, minlength=n_vert), 1e-300)[:, None]
 
-    def _vertex_detail(self, n_vert: int) -> np.ndarray:
-        """(V, C) triangle-area-weighted shadow-texture detail at the input vertices: for each
-        front-side textured leaf with a corner on a vertex of its triangle, the detail there."""
+    @property
+    def vertex_detail(self) -> np.ndarray:
+        """(V, C) float, W/m^2 times m^2: triangle-area-weighted sum of the shadow-texture detail
+        at each input vertex (for each front-side textured leaf with a corner on a vertex of its
+        triangle, the detail there times the triangle's area); zero at vertices without one.
+        ``vertex_radiosity`` divides it, with the triangles' radiosity, by the area around the vertex."""
+        n_vert = len(self.vertices)
         rows = self.detail_leaves
         out = np.zeros((n_vert, self.channels))
         rows = rows[self.leaf_side[rows] == 0]

@@ -24,10 +24,8 @@ F_PERPENDICULAR = 0.200044
 
 @pytest.fixture(scope="session", autouse=True)
 def variant():
-    """Run everything on the JIT variant mirad picks (CUDA where present, else LLVM)."""
-    from mirad._runtime import choose_variant
-
-    return choose_variant(None)
+    """Run everything on the JIT variant mirad picks at import (CUDA where present, else LLVM)."""
+    return mi.variant()
 
 
 def square(to_world, *, rho=0.5, radiance=None, sid=None):

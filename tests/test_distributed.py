@@ -81,7 +81,7 @@ def test_reference_chunks_match_in_process_chunks(evaluator):
     assert ref.paths == 64 * scene.triangle_count
     for k, start in enumerate(range(0, scene.triangle_count, 10)):
         tris = np.arange(start, min(scene.triangle_count, start + 10))
-        local = triangle_reference(scene, samples_per_triangle=64, seed=distributed._chunk_seed(2, k), triangles=tris)
+        local = triangle_reference(scene, samples_per_triangle=64, seed=distributed.chunk_seed(2, k), triangles=tris)
         np.testing.assert_array_equal(ref.radiosity[tris], local.radiosity)
         np.testing.assert_array_equal(ref.stderr[tris], local.stderr)
 

@@ -292,7 +292,7 @@ def test_each_side_of_a_two_sided_sheet_gets_its_own_radiosity(tmp_path, sheet_s
 def test_no_light_crosses_an_opaque_two_sided_sheet(tmp_path):
     # a two-sided sheet closes the room at z = 1 (edges on the walls): everything below stays black
     parts = cases.room_parts()
-    parts["sheet"] = cases._part(cases.grid((0, 0, 1.0), (2.0, 0, 0), (0, 2.0, 0), 4, 4), 0.5, twosided=True)
+    parts["sheet"] = cases.part(cases.grid((0, 0, 1.0), (2.0, 0, 0), (0, 2.0, 0), 4, 4), 0.5, twosided=True)
     scene = mirad.load_scene(cases.to_dict(tmp_path, parts))
     sol = mirad.solve(scene, tolerance=0.05)
     below = np.flatnonzero(scene.tri_vertices[:, :, 2].max(1) <= 1.0 + 1e-9)
@@ -311,12 +311,12 @@ def test_no_light_crosses_an_opaque_two_sided_sheet(tmp_path):
 def test_duplicates_and_non_manifold_edges_are_detected_warned_once_and_solved(tmp_path):
     parts = cases.room_parts()
     sheet = cases.grid((0.6, 0.6, 0.8), (0.8, 0, 0), (0, 0.8, 0), 2, 2)
-    parts["sheet"] = cases._part(sheet, 0.5)
-    parts["sheet-copy"] = cases._part(sheet, 0.5)                      # coincident duplicate shape
+    parts["sheet"] = cases.part(sheet, 0.5)
+    parts["sheet-copy"] = cases.part(sheet, 0.5)                      # coincident duplicate shape
     # a fin: a third triangle on the middle edge of a two-triangle quad (the edge has 3 triangles)
     v = np.array([[0.5, 1.5, 0.3], [1.5, 1.5, 0.3], [1.5, 1.7, 0.3], [0.5, 1.7, 0.3], [1.0, 1.6, 0.8]])
     fin = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 4]])
-    parts["fin"] = cases._part((v, fin), 0.5)
+    parts["fin"] = cases.part((v, fin), 0.5)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         scene = mirad.load_scene(cases.to_dict(tmp_path, parts))

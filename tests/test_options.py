@@ -12,21 +12,15 @@ import pytest
 
 import mirad
 from mirad import options
-from mirad.cli import _parser
+from mirad.cli import command_options
 from mirad.integrator import make_integrator
 from mirad.settings import Settings
 
 PACKAGE = Path(mirad.__file__).parent
 
 
-def _subparser(name):
-    parser = _parser()
-    sub = next(a for a in parser._actions if a.dest == "command")
-    return sub.choices[name]
-
-
 def _cli_actions(command):
-    return {a.dest: a for a in _subparser(command)._actions}
+    return command_options(command)
 
 
 def test_every_settings_field_is_an_option_with_the_dataclass_default():

@@ -100,7 +100,7 @@ def test_texture_energy_matches_ray_form_factor():
     pts = receiver[0] + uv[:, :1] * (receiver[1] - receiver[0]) + uv[:, 1:] * (receiver[3] - receiver[0])
     normals = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
     vis, _ = S.ray_visibility(scene, source, pts, normals, rays=64)
-    f_point = S._point_ff(pts, normals, np.repeat(source[None], len(pts), 0))
+    f_point = S.point_form_factor(pts, normals, np.repeat(source[None], len(pts), 0))
     ff_ray = np.mean(f_point * vis)
     se = np.std(f_point * vis) / np.sqrt(len(pts))
     # energy error of the texture link within its own predicted (mean visibility) error
@@ -194,7 +194,7 @@ def test_apply_texture_links_on_a_problem():
         pts = tri[0] + a[:, None] * (tri[1] - tri[0]) + b[:, None] * (tri[2] - tri[0])
         normals = np.repeat(prob.normals(tl.recv[k:k + 1]), len(pts), 0)
         vis, _ = S.ray_visibility(scene.mi_scene, light, pts, normals, rays=32, seed=k)
-        g = S._point_ff(pts, normals, np.repeat(light[None], len(pts), 0)) * vis
+        g = S.point_form_factor(pts, normals, np.repeat(light[None], len(pts), 0)) * vis
         se = g.std() / np.sqrt(len(g))
         assert abs(tl.ff[k] - g.mean()) < 3 * se + tl.ff_unoccluded[k] * tl.predicted_error[k]
     # the matrix carries the mean transfers

@@ -132,7 +132,7 @@ def test_vertex_radiosity_carries_the_detail_at_textured_corners():
     scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
     sol = mirad.solve(scene, tolerance=0.05, shadow_textures=True, quiet=True)
     n_vert = len(sol.vertices)
-    textured = np.flatnonzero(np.abs(sol._vertex_detail(n_vert)).sum(1) > 0)
+    textured = np.flatnonzero(np.abs(sol.vertex_detail).sum(1) > 0)
     assert len(textured)
     faces, area = sol.faces, sol.triangle_area
     mean = np.bincount(faces.ravel(), weights=np.repeat(area * sol.triangle_radiosity[:, 0], 3), minlength=n_vert)

@@ -23,7 +23,7 @@ from meshgen import grid, merge, rotation, write_ply  # noqa: E402
 CEILING_RADIANCE = 10.0
 
 
-def _part(mesh, rho, radiance=None, twosided=False):
+def part(mesh, rho, radiance=None, twosided=False):
     return {"mesh": mesh, "rho": rho, "radiance": radiance, "twosided": twosided}
 
 
@@ -60,10 +60,10 @@ def room_parts(size=2.0, cells=4, rho=0.6, light_half=0.25, radiance=CEILING_RAD
         "wall-y0": grid((0, 0, 0), (0, 0, s), (s, 0, 0), n, n),
         "wall-y1": grid((0, s, 0), (s, 0, 0), (0, 0, s), n, n),
     }
-    parts = {sid: _part(m, rho) for sid, m in faces.items() if sid not in skip}
+    parts = {sid: part(m, rho) for sid, m in faces.items() if sid not in skip}
     c, h = s / 2, light_half
     z = s * (1 - 1e-3)
-    parts["light"] = _part(grid((c - h, c - h, z), (0, 2 * h, 0), (2 * h, 0, 0), 1, 1), 0.0, radiance)
+    parts["light"] = part(grid((c - h, c - h, z), (0, 2 * h, 0), (2 * h, 0, 0), 1, 1), 0.0, radiance)
     return parts
 
 
@@ -75,11 +75,11 @@ def corner_room(folder, *, xform=None, cells=4):
     # floor: finer strips near the hinge (x in [0.25, 1.0]) so per-triangle errors near the edge are seen
     xs = np.array([0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0, 1.5, 2.0])
     floor = merge([grid((a, 0, 0), (b - a, 0, 0), (0, 2.0, 0), 1, 4) for a, b in zip(xs[:-1], xs[1:])])
-    parts["floor"] = _part(floor, 0.6)
+    parts["floor"] = part(floor, 0.6)
     # plate: from the hinge (x = 0.5) rising at 10 degrees towards +x, 1 m long, y in [0.5, 1.5]
     plate = grid((0, 0, 0), (0, 1.0, 0), (1.0, 0, 0), 4, 4)     # normal -z (faces down into the wedge)
     v = plate[0] @ rotation((0, 1, 0), -10).T + np.array([0.5, 0.5, 0.0])
-    parts["plate"] = _part((v, plate[1]), 0.7, twosided=True)
+    parts["plate"] = part((v, plate[1]), 0.7, twosided=True)
     return to_dict(folder, parts, xform)
 
 
@@ -89,7 +89,7 @@ def sliver_room(folder, *, aspect=1000.0):
     w = 2.0 / aspect
     xs = [0.0, 1.0 - w, 1.0, 1.0 + w, 2.0]
     floor = merge([grid((a, 0, 0), (b - a, 0, 0), (0, 2.0, 0), 1, 1) for a, b in zip(xs[:-1], xs[1:])])
-    parts["floor"] = _part(floor, 0.6)
+    parts["floor"] = part(floor, 0.6)
     return to_dict(folder, parts)
 
 
@@ -108,7 +108,7 @@ def pierced_room(folder):
     straddle the wall."""
     parts = room_parts(cells=5)
     parts["light"]["mesh"] = grid((0.3, 0.75, 1.998), (0, 0.5, 0), (0.5, 0, 0), 1, 1)
-    parts["wall"] = _part(grid((1.0, 0, -0.3), (0, 0, 2.4), (0, 2.0, 0), 5, 4), 0.6, twosided=True)
+    parts["wall"] = part(grid((1.0, 0, -0.3), (0, 0, 2.4), (0, 2.0, 0), 5, 4), 0.6, twosided=True)
     return to_dict(folder, parts)
 
 
@@ -116,7 +116,7 @@ def sheet_room(folder, *, xform=None, flip=False):
     """A leaf: a two-sided sheet (0.8 x 0.8 m at z = 0.8, front facing up; ``flip``: down) in the lit room."""
     parts = room_parts()
     v, f = grid((0.6, 0.6, 0.8), (0.8, 0, 0), (0, 0.8, 0), 2, 2)
-    parts["sheet"] = _part((v, f[:, ::-1] if flip else f), 0.5, twosided=True)
+    parts["sheet"] = part((v, f[:, ::-1] if flip else f), 0.5, twosided=True)
     return to_dict(folder, parts, xform)
 
 
@@ -133,6 +133,6 @@ def many_lights_room(folder, *, count=1000, size=2.0):
     centres = np.stack([(k % side + 0.5) / side * size, (k // side + 0.5) / side * size], 1)
     h = 0.005
     for i, (x, y) in enumerate(centres):
-        parts[f"lamp-{i:04d}"] = _part(grid((x - h, y - h, size * (1 - 1e-3)), (0, 2 * h, 0), (2 * h, 0, 0), 1, 1),
+        parts[f"lamp-{i:04d}"] = part(grid((x - h, y - h, size * (1 - 1e-3)), (0, 2 * h, 0), (2 * h, 0, 0), 1, 1),
                                        0.0, 1.0)
     return to_dict(folder, parts)
