@@ -167,13 +167,17 @@ def _keep(state: State, links: Links) -> np.ndarray:
     return (links.ff_unocc > 0) | (possible & ((links.err_ff > 0) | ~planar_s))
 
 
-def refine(state: State, source: SourceState, eps: float, max_links: int) -> tuple[bool, bool]:
-    """Stage refine: waves until every link is under eps (W); returns (changed, capped)."""
+def refine(state: State, source: SourceState, eps: float, max_links: int,
+           max_waves: int | None = None) -> tuple[bool, bool]:
+    """Stage refine: waves until every link is under eps (W), or ``max_waves`` waves;
+    returns (changed, capped)."""
     t0 = time.perf_counter()
     nodes = state.nodes
     changed = capped = False
     checked = 0
-    while True:
+    waves = 0
+    while max_waves is None or waves < max_waves:
+        waves += 1
         links = state.links
         fresh = np.arange(checked, len(links))
         part = links.select(fresh)
@@ -506,6 +510,17 @@ def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
 # The driver
 # ------------------------------------------------------------------------------------------
 
+def tree_depth(nodes: Nodes) -> int:
+    """Most levels from the root down to an input patch."""
+    depth = 0
+    node = np.flatnonzero(nodes.kind == TRIANGLE)
+    while len(node):
+        node = nodes.parent[node]
+        node = np.unique(node[node >= 0])
+        depth += 1
+    return depth
+
+
 def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     """Hierarchical radiosity on a loaded scene; returns a Solution."""
     from .solution import Solution
@@ -523,6 +538,9 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     iterations = solved.iterations
     bar.update(1)
     passes = 0
+    # one wave per pass: a link reaches the input triangles in as many passes as the tree
+    # is deep, so the pass budget is max_refine_passes beyond that depth
+    max_passes = settings.max_refine_passes + tree_depth(nodes)
     history = []
     try:
         while True:
@@ -530,13 +548,15 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
             est = estimate(state, solved, src_state)
             history.append(est.relative)
             bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
-            if est.relative <= settings.tolerance or capped or passes >= settings.max_refine_passes:
+            if est.relative <= settings.tolerance or capped or passes >= max_passes:
                 break
             budget = settings.tolerance * state.total_area * est.reflected_mean
             eps = refinement_threshold(np.concatenate([est.link_errors, est.direct]), budget)
             leaves = state.nodes.leaves
             resampled = resample_direct(state, leaves, eps)
-            changed, capped = refine(state, src_state, eps, max_links)
+            # one wave per pass: the children's errors are judged after the next solve, from
+            # the radiosity they bring (their parents' errors and eps were judged without it)
+            changed, capped = refine(state, src_state, eps, max_links, max_waves=1)
             n_leaves = len(state.nodes.leaves)
             if n_leaves != len(leaves):
                 new = state.nodes.leaves
