@@ -11,6 +11,9 @@ Per triangle, two estimators, both unbiased and both driven by Mitsuba's ``path`
     traces the incident radiance L_in along each, so H = pi * mean(L_in) and B = E + rho * H
     (E and rho as mirad ingested them).
 
+``side="back"`` estimates the other side of each triangle (its own radiosity where the BSDF is
+two-sided): the same estimators with the normal reversed, the back's reflectance and no emission.
+
 Every estimate comes with its standard error (sample standard deviation / sqrt(n)), so nobody
 mistakes the reference's noise for solver error. Paths are traced in Dr.Jit launches of at most
 ``batch`` lanes; the sampler seed is opaque, so every launch reuses one compiled kernel.
@@ -60,6 +63,7 @@ MIN_AREA_SAMPLES = 16
 #: Bumped whenever the estimator changes, so old caches are recomputed.
 CACHE_VERSION = 2
 METHODS = ("outgoing", "irradiance")
+SIDES = ("front", "back")
 
 
 # ------------------------------------------------------------------------------------------
@@ -71,7 +75,8 @@ class Reference:
     """Per-triangle reference radiosity (T, C) and its standard error (T, C), W/m^2.
 
     ``triangles`` are the input-triangle indices estimated (all of them unless a subset was
-    asked for); ``radiosity`` and ``stderr`` rows follow that order.
+    asked for); ``radiosity`` and ``stderr`` rows follow that order. ``side`` is the side
+    estimated: "front" (along the triangle's normal) or "back" (two-sided BSDFs).
     """
 
     radiosity: np.ndarray
@@ -84,6 +89,7 @@ class Reference:
     fingerprint: str = ""
     triangles: np.ndarray | None = None
     from_cache: bool = False
+    side: str = "front"
 
     def _rows(self, scene, shape_id: str) -> tuple[np.ndarray, np.ndarray]:
         tris = np.arange(len(self.radiosity)) if self.triangles is None else self.triangles
@@ -91,7 +97,7 @@ class Reference:
         return mask, scene.tri_area[tris][mask]
 
     def shape_radiosity(self, scene, shape_id: str) -> np.ndarray:
-        """(C,) area-weighted mean reference radiosity over a shape's front side, W/m^2."""
+        """(C,) area-weighted mean reference radiosity over a shape's side ``self.side``, W/m^2."""
         mask, a = self._rows(scene, shape_id)
         return (self.radiosity[mask] * a[:, None]).sum(0) / a.sum()
 
@@ -104,7 +110,7 @@ class Reference:
     def _meta(self) -> dict:
         return {"version": CACHE_VERSION, "fingerprint": self.fingerprint, "method": self.method,
                 "seed": self.seed, "samples_per_triangle": self.samples_per_triangle,
-                "seconds": self.seconds, "paths": self.paths}
+                "seconds": self.seconds, "paths": self.paths, "side": self.side}
 
     def save(self, path) -> Path:
         """Write as .npz (atomically)."""
@@ -123,7 +129,8 @@ class Reference:
             return cls(radiosity=data["radiosity"], stderr=data["stderr"],
                        samples_per_triangle=int(meta["samples_per_triangle"]), seconds=float(meta["seconds"]),
                        paths=int(meta["paths"]), method=meta["method"], seed=int(meta["seed"]),
-                       fingerprint=meta["fingerprint"], triangles=tris, from_cache=True)
+                       fingerprint=meta["fingerprint"], triangles=tris, from_cache=True,
+                       side=meta.get("side", "front"))
 
 
 @dataclass
@@ -195,8 +202,9 @@ def sample_counts(area: np.ndarray, mean: int, allocation: str) -> np.ndarray:
 
 def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                        triangles: np.ndarray | None = None, method: str = "outgoing",
-                       batch: int = BATCH, allocation: str = "uniform", quiet: bool = True) -> Reference:
-    """Path-traced front-side radiosity of every (or the given) input triangle.
+                       batch: int = BATCH, allocation: str = "uniform", quiet: bool = True,
+                       side: str = "front") -> Reference:
+    """Path-traced radiosity of one side of every (or the given) input triangle.
 
     Parameters
     ----------
@@ -211,6 +219,8 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     allocation : "uniform" (every triangle the same paths) or "area" (in proportion to area,
                  see ``sample_counts``)
     quiet : no progress bar
+    side : "front" (along the triangle's normal) or "back" (the other side, which has its own
+           radiosity where the BSDF is two-sided: reflectance ``scene.back_rho``, no emission)
 
     Returns
     -------
@@ -218,6 +228,8 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     """
     if method not in METHODS:
         raise SettingsError(f"method={method!r}: choose one of {', '.join(METHODS)}")
+    if side not in SIDES:
+        raise SettingsError(f"side={side!r}: choose one of {', '.join(SIDES)}")
     n = _check_count("samples_per_triangle", samples_per_triangle)
     batch = _check_count("batch", batch)
     t0 = time.perf_counter()
@@ -226,8 +238,12 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
         raise SettingsError(f"triangles: indices must lie in [0, {scene.triangle_count})")
     integrator = _integrator(max_depth)
     verts = scene.tri_vertices[tris]
-    normal = scene.tri_normal[tris]
-    rho, emission = scene.tri_rho[tris], scene.tri_emission[tris]
+    if side == "front":
+        normal = scene.tri_normal[tris]
+        rho, emission = scene.tri_rho[tris], scene.tri_emission[tris]
+    else:                      # Mitsuba's area emitters emit on the front side only
+        normal = -scene.tri_normal[tris]
+        rho, emission = scene.back_rho[tris], np.zeros_like(scene.tri_emission[tris])
     k = len(tris)
     total = np.zeros((k, 3))
     total_sq = np.zeros((k, 3))
@@ -235,7 +251,7 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     counts = sample_counts(scene.tri_area[tris], n, allocation)
     ends = np.cumsum(counts)
     count = int(ends[-1]) if k else 0
-    bar = tqdm(total=count, desc="reference paths", unit="path", unit_scale=True, disable=quiet, leave=False)
+    bar = tqdm(total=count, desc="reference paths" if side == "front" else "reference paths (back)", unit="path", unit_scale=True, disable=quiet, leave=False)
     for index, start in enumerate(range(0, count, batch)):
         stop = min(count, start + batch)
         lanes = stop - start
@@ -271,7 +287,7 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     var = np.maximum(total_sq / m - mean * mean, 0.0) * (m / np.maximum(m - 1, 1))
     stderr = np.sqrt(var / m)
     return Reference(mean, stderr, n, time.perf_counter() - t0, count, method=method, seed=int(seed),
-                     fingerprint=scene.fingerprint, triangles=None if triangles is None else tris)
+                     fingerprint=scene.fingerprint, triangles=None if triangles is None else tris, side=side)
 
 
 def default_cache_dir() -> Path:
@@ -292,7 +308,7 @@ def cache_path(scene, *, cache_dir=DEFAULT_CACHE, kind: str = "triangles", **set
 
 def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: int = 1024, seed: int = 0,
                      max_depth: int = -1, method: str = "outgoing", triangles=None, allocation: str = "uniform",
-                     quiet: bool = True) -> Reference:
+                     quiet: bool = True, side: str = "front") -> Reference:
     """``triangle_reference`` through an on-disk cache (``cache_dir=None``: no cache).
 
     A cached file is reused only when its stored fingerprint, method, seed and sample count all
@@ -302,12 +318,13 @@ def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: in
     settings = {"samples_per_triangle": int(samples_per_triangle), "seed": int(seed),
                 "max_depth": int(max_depth), "method": method,
                 **({} if allocation == "uniform" else {"allocation": allocation}),
+                **({} if side == "front" else {"side": side}),
                 "triangles": None if triangles is None else hashlib.sha256(
                     np.asarray(triangles, np.int64).tobytes()).hexdigest()[:12]}
     if cache_dir is None:
         return triangle_reference(scene, samples_per_triangle=samples_per_triangle, seed=seed,
                                   max_depth=max_depth, method=method, triangles=triangles,
-                                  allocation=allocation, quiet=quiet)
+                                  allocation=allocation, quiet=quiet, side=side)
     path = cache_path(scene, cache_dir=cache_dir, **settings)
     if path.exists():
         try:
@@ -315,12 +332,12 @@ def cached_reference(scene, *, cache_dir=DEFAULT_CACHE, samples_per_triangle: in
         except Exception:
             ref = None
         if (ref is not None and ref.fingerprint == scene.fingerprint and ref.method == method
-                and ref.seed == int(seed) and ref.samples_per_triangle == int(samples_per_triangle)
+                and ref.seed == int(seed) and ref.samples_per_triangle == int(samples_per_triangle) and ref.side == side
                 and len(ref.radiosity) == (scene.triangle_count if triangles is None else len(triangles))):
             return ref
     ref = triangle_reference(scene, samples_per_triangle=samples_per_triangle, seed=seed,
                              max_depth=max_depth, method=method, triangles=triangles, allocation=allocation,
-                             quiet=quiet)
+                             quiet=quiet, side=side)
     os.makedirs(path.parent, exist_ok=True)
     ref.save(path)
     return ref

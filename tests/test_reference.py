@@ -153,3 +153,25 @@ def test_bad_settings(options, hint):
     scene = mirad.load_scene(SCENES / "closed-form" / "parallel-squares.xml")
     with pytest.raises(mirad.SettingsError, match=hint):
         triangle_reference(scene, **options)
+
+
+def test_back_side_reference_is_the_flipped_sheets_front(tmp_path):
+    """side="back" estimates the other side of a two-sided sheet: the same as the front-side
+    estimate of the sheet with its faces flipped (independent seeds, within Z_MAX standard errors)."""
+    import sys
+
+    sys.path.insert(0, str(SCENES / "hard-cases"))
+    import cases
+
+    scene = mirad.load_scene(cases.sheet_room(tmp_path / "up"))
+    flipped = mirad.load_scene(cases.sheet_room(tmp_path / "down", flip=True))
+    sheet = np.flatnonzero(scene.tri_shape == scene.shape_index("sheet"))
+    back = triangle_reference(scene, samples_per_triangle=4096, seed=3, triangles=sheet, side="back")
+    front = triangle_reference(flipped, samples_per_triangle=4096, seed=4, triangles=sheet)
+    assert back.side == "back" and np.all(back.radiosity > 0)
+    a = scene.tri_area[sheet]
+    b, f = (r.radiosity[:, 0] @ a / a.sum() for r in (back, front))
+    se = np.hypot(*(np.sqrt(((r.stderr[:, 0] * a) ** 2).sum()) / a.sum() for r in (back, front)))
+    assert abs(b - f) <= Z_MAX * se
+    with pytest.raises(mirad.errors.SettingsError, match="side"):
+        triangle_reference(scene, samples_per_triangle=16, side="top")

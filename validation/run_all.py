@@ -33,7 +33,8 @@ sys.path.insert(0, str(REPO))
 
 import mirad  # noqa: E402  (sets up LLVM before mitsuba)
 from mirad.solution import atomic_write  # noqa: E402
-from mirad.validate import _pct, from_json, machine, ratio_lines, to_json, validate, write_outputs  # noqa: E402
+from mirad.report import from_json, machine, percent, ratio_lines, to_json, write_outputs  # noqa: E402
+from mirad.validate import validate  # noqa: E402
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -92,7 +93,7 @@ def where_time_goes(result) -> str:
              if isinstance(ph.get(k), (int, float)) and ph[k] > 0]
     total = ph.get("total")
     links_per_leaf = (best["links"] or 0) / max(best["leaves"] or 1, 1)
-    return (f"mirad's most accurate point (tolerance {best['tolerance']:g}: {_pct(best['l1'])} L1 in "
+    return (f"mirad's most accurate point (tolerance {best['tolerance']:g}: {percent(best['l1'])} L1 in "
             f"{best['seconds']:.1f} s wall clock, solver total {total:.1f} s) has phase timings "
             f"(`sol.stats['seconds']`) {', '.join(parts) or 'none'}; 'visibility' counts every link-evaluation "
             f"wave (the initial linking's and those inside 'refine'); {best['leaves'] or 0:,} leaves, "
@@ -108,8 +109,8 @@ def summary_table(results: list) -> str:
     for r in results:
         best = min(r.mirad, key=lambda x: x["l1"]) if r.mirad else None
         tp, hp = r.crossings.get(0.01, {}).get("path_tracer", (None, "n/a"))
-        cells = [r.name, f"{r.triangles:,}", _pct(r.reference["noise"]["l1"]),
-                 f"{_pct(best['l1'])} ({best['seconds']:.2f})" if best else "n/a",
+        cells = [r.name, f"{r.triangles:,}", percent(r.reference["noise"]["l1"]),
+                 f"{percent(best['l1'])} ({best['seconds']:.2f})" if best else "n/a",
                  f"{tp:.3g} ({hp})" if tp else hp]
         for target in (0.01, 0.02):
             value = r.ratios.get(target)
