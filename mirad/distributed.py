@@ -45,7 +45,7 @@ import numpy as np
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import EnvironmentProblem, SettingsError
 
-__all__ = ["DaskEvaluator", "distributed_reference", "check_main_guard", "unguarded_main_line", "chunk_seed"]
+__all__ = ["DaskEvaluator", "check_main_guard", "unguarded_main_line", "chunk_seed"]
 
 #: Fewest links per batch (smaller waves go out as fewer batches).
 MIN_BATCH = 4096
@@ -431,9 +431,3 @@ def chunk_seed(seed: int, chunk: int) -> int:
     chunk can be recomputed in process with ``triangle_reference(seed=chunk_seed(seed, k))``."""
     digest = hashlib.blake2b(f"mirad-ref:{seed}:{chunk}".encode(), digest_size=4).digest()
     return int.from_bytes(digest, "little") >> 1
-
-
-def distributed_reference(scene, *, workers: int = 0, scheduler: str | None = None, **options):
-    """``DaskEvaluator.reference`` on a cluster made for this call (closed afterwards)."""
-    with DaskEvaluator(scene, workers=workers, scheduler=scheduler) as ev:
-        return ev.reference(scene, **options)

@@ -63,7 +63,7 @@ from .visibility import hash_u32, stratified, triangle_point
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "point_form_factor", "prefer_texture", "subdivision_cost",
+__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "point_form_factor", "prefer_texture",
            "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear",
            "narrowest_penumbra"]
 
@@ -161,8 +161,8 @@ class ShadowTextures:
                                     penumbra exceeds the largest kernel (texture unusable)
     depth_error, combination_error : (M,) float   the two parts of predicted_error
     layers : (M,) int               depth layers used
-    penumbra : (M,) float           narrowest layer penumbra width s (1/f - 1), metres (for
-                                    ``subdivision_cost``; inf where nothing occludes)
+    penumbra : (M,) float           narrowest layer penumbra width s (1/f - 1), metres
+                                    (inf where nothing occludes)
     occluded : (M,) bool            some mask ray hit an occluder
     rays : int                      mask rays traced
     """
@@ -648,24 +648,13 @@ def ray_visibility(mi_scene, source_verts, points, normals, *, rays: int = 256, 
 # Decision and solver glue
 # ------------------------------------------------------------------------------------------
 
-def prefer_texture(predicted_error, tolerance: float, *, texture_cost=None, subdivision_cost=None) -> np.ndarray:
-    """(M,) bool: links whose texture's predicted error is within ``tolerance`` (visibility units)
-    and, when costs are given (any common unit, e.g. rays), cheaper than subdividing.
+def prefer_texture(predicted_error, tolerance: float) -> np.ndarray:
+    """(M,) bool: links whose texture's predicted error is within ``tolerance`` (visibility units).
 
     >>> prefer_texture(np.array([0.01, 0.2]), 0.05).tolist()
     [True, False]
     """
-    ok = np.asarray(predicted_error) <= tolerance
-    if texture_cost is not None and subdivision_cost is not None:
-        ok &= np.asarray(texture_cost) < np.asarray(subdivision_cost)
-    return ok
-
-
-def subdivision_cost(receiver_area, penumbra_width, *, rays_per_link: int, links_per_element: float = 4.0):
-    """Rays that resolving a shadow by subdivision would need: elements of about the penumbra
-    width over the receiver, each with ``links_per_element`` links of ``rays_per_link`` rays."""
-    elements = np.maximum(1.0, np.asarray(receiver_area) / np.maximum(np.asarray(penumbra_width), 1e-12) ** 2)
-    return elements * links_per_element * rays_per_link
+    return np.asarray(predicted_error) <= tolerance
 
 
 @dataclass
