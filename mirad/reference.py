@@ -251,7 +251,8 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
     counts = sample_counts(scene.tri_area[tris], n, allocation)
     ends = np.cumsum(counts)
     count = int(ends[-1]) if k else 0
-    bar = tqdm(total=count, desc="reference paths" if side == "front" else "reference paths (back)", unit="path", unit_scale=True, disable=quiet, leave=False)
+    bar = tqdm(total=count, desc="reference paths" if side == "front" else "reference paths (back)", unit="path",
+               unit_scale=True, disable=quiet, leave=False)
     for index, start in enumerate(range(0, count, batch)):
         stop = min(count, start + batch)
         lanes = stop - start

@@ -63,7 +63,8 @@ from .visibility import hash_u32, stratified, triangle_point
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "point_form_factor", "prefer_texture",
+__all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibility", "point_form_factor",
+           "prefer_texture",
            "TextureLinks", "apply_texture_links", "texel_uv", "receiver_points", "bilinear",
            "narrowest_penumbra"]
 

@@ -50,8 +50,8 @@ def chair(x, y, angle, *, seat=0.45, height=0.45, leg=0.04):
     # the back stands on the seat 1 cm in from its sides and rear, without a bottom face: a back
     # flush with the seat's edges would put four faces on one edge (non-manifold)
     parts = [box((-seat / 2, -seat / 2, height - 0.04), (seat / 2, seat / 2, height)),
-             box((-seat / 2 + INSET, seat / 2 - 0.04 - INSET, height), (seat / 2 - INSET, seat / 2 - INSET, height + 0.45),
-                 skip=("-z",))]
+             box((-seat / 2 + INSET, seat / 2 - 0.04 - INSET, height),
+                 (seat / 2 - INSET, seat / 2 - INSET, height + 0.45), skip=("-z",))]
     for sx in (-1, 1):
         for sy in (-1, 1):
             cx, cy = sx * (seat / 2 - 0.03), sy * (seat / 2 - 0.03)
