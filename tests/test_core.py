@@ -6,16 +6,15 @@ import numpy as np
 import pytest
 
 import mirad
-from conftest import CLOSED_FORM_REL, F_PARALLEL, SCENES, area_mean, closed_box
+from conftest import CLOSED_FORM_REL, F_PARALLEL, F_PERPENDICULAR, SCENES, area_mean, closed_box
 from mirad import core
 from mirad.settings import make_settings
 
 HIER = dict(core="hierarchical", quiet=True)
 
 
-# (perpendicular squares: the contact edge drives this core to millions of links, 86 s at
-# tolerance 0.05; see validation/RESULTS.md. The legacy core's test covers that closed form.)
-@pytest.mark.parametrize("name, exact, tol", [("parallel-squares", F_PARALLEL, 0.01)])
+@pytest.mark.parametrize("name, exact, tol", [("parallel-squares", F_PARALLEL, 0.01),
+                                              ("perpendicular-squares", F_PERPENDICULAR, 0.01)])
 def test_form_factor_closed_forms(name, exact, tol):
     scene = mirad.load_scene(SCENES / "closed-form" / f"{name}.xml")
     sol = mirad.solve(scene, tolerance=tol, **HIER)
