@@ -116,8 +116,10 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     # triangles: the 7-point degree-5 rule against the degree-2 rule on its six outer points
     # (EMBEDDED_WEIGHTS). Their difference is about the degree-2 rule's error C (h/d)^3 for a
     # receiver of radius h at distance d from the source; the degree-5 rule's is about
-    # C (h/d)^6, hence the (h/d)^3 factor (capped at 1)
-    d = np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1)
+    # C (h/d)^6, hence the (h/d)^3 factor (capped at 1). d is the distance to the nearest
+    # part of the source (its bounding sphere), not to its centre: a triangle in the corner
+    # of a large wall is next to the light it gets, where the kernel is steepest
+    d = np.maximum(np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1) - nodes.radius[src], 0.0)
     h = nodes.radius[recv]
     order_gain = np.minimum(1.0, (h / np.maximum(d, 1e-12 * np.maximum(h, 1e-300))) ** 3)
     low = (g * EMBEDDED_WEIGHTS[None]).sum(axis=1)

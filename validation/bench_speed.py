@@ -10,7 +10,7 @@ date and machine to validation/RESULTS.md.
 
 Usage (from the repository root)::
 
-    python validation/bench_speed.py [--scenes cornell-box-fine,furnished-room] [--record]
+    python validation/bench_speed.py [--scenes cornell-box-fine,furnished-room] [--core legacy] [--record]
 """
 
 from __future__ import annotations
@@ -64,12 +64,12 @@ def time_at(target: float, seconds: list, errs: list) -> float:
     return float("nan")
 
 
-def run(name: str, cfg: dict) -> tuple[list, str]:
+def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
     scene = mirad.load_scene(str(REPO / "scenes" / name / "scene.xml"))
     ref = cached_reference(scene, samples_per_triangle=cfg["reference"], seed=12345)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        mirad.solve(scene, tolerance=cfg["tolerances"][0])                      # warm-up
+        mirad.solve(scene, tolerance=cfg["tolerances"][0], core=core)           # warm-up
     triangle_reference(scene, samples_per_triangle=cfg["pt"][0], seed=1)        # warm-up
     lines = [f"| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | estimate | leaves | links "
              f"| links/leaf | rays | where the time goes |", "|" + "---|" * 11]
@@ -78,7 +78,7 @@ def run(name: str, cfg: dict) -> tuple[list, str]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             t = time.perf_counter()
-            sol = mirad.solve(scene, tolerance=tol, seed=0)
+            sol = mirad.solve(scene, tolerance=tol, seed=0, core=core)
             dt = time.perf_counter() - t
         e_b, e_r = errors(scene, sol.triangle_radiosity, ref.radiosity)
         st = sol.stats
@@ -104,7 +104,7 @@ def run(name: str, cfg: dict) -> tuple[list, str]:
     noise = errors(scene, ref.radiosity + ref.stderr * np.sqrt(2 / np.pi), ref.radiosity)[0]
     tm, tp = time_at(TARGET, m_sec, m_err), time_at(TARGET, p_sec, p_err)
     summary = (f"**{name}** ({scene.triangle_count:,} triangles; reference {cfg['reference']:,} paths/triangle, "
-               f"noise {noise:.2%}): 1 % rel. L1 per triangle: mirad {tm:.3f} s, path tracer {tp:.3f} s, "
+               f"noise {noise:.2%}): 1 % rel. L1 per triangle: mirad ({core} core) {tm:.3f} s, path tracer {tp:.3f} s, "
                f"ratio {tp / tm:.1f}x")
     print(summary, flush=True)
     return lines, summary
@@ -114,14 +114,15 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default="cornell-box,cornell-box-fine,furnished-room")
     parser.add_argument("--record", action="store_true")
+    parser.add_argument("--core", default="hierarchical", choices=("hierarchical", "legacy"))
     args = parser.parse_args(argv)
     out = []
     for name in args.scenes.split(","):
-        lines, summary = run(name, SCENES[name])
+        lines, summary = run(name, SCENES[name], args.core)
         out.append("\n".join([summary, "", *lines, ""]))
     if args.record:
         stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-        text = (f"\n## Hierarchical core against the path tracer ({stamp}, {machine()})\n\n"
+        text = (f"\n## The {args.core} core against the path tracer ({stamp}, {machine()})\n\n"
                 "`python validation/bench_speed.py`: both sides warmed up, timed in one run; errors against a "
                 "cached path-traced reference.\n\n" + "\n".join(out))
         with open(RESULTS, "a", encoding="utf-8") as f:
