@@ -471,7 +471,7 @@ def solve_problem(scene: Scene, settings: Settings):
             # whether a cluster link was seen at all is judged on both sample sets, so the error
             # estimate does not swing with which links happen to miss their cluster this time
             prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
-            _restore_textures(prob)
+            restore_textures(prob)
             system = prob.system(leaves)
             b_leaf, iterations, residual = prob.solve(system, b_leaf)
             total_iterations += iterations
@@ -715,7 +715,7 @@ TEXTURED = 3
 RETEXTURE = 4
 
 
-def _texture_links(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: float, b_elem: np.ndarray) -> None:
+def texture_links_wave(prob: Problem, fresh: np.ndarray, error: np.ndarray, eps: float, b_elem: np.ndarray) -> None:
     """Replace ray visibility by a convolution shadow texture (shadows.py) on links that would
     otherwise split (and on the children of textured links, RETEXTURE): partly visible links
     from emitters whose texture's predicted error, as power, is within their share of the
@@ -786,7 +786,7 @@ def _stored_textures(prob: Problem, ids: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _texture_error_share(prob: Problem, ids: np.ndarray) -> np.ndarray:
-    """(M,) error share of links ``ids``: a TEXTURED link's share from _texture_links, else 1."""
+    """(M,) error share of links ``ids``: a TEXTURED link's share from texture_links_wave, else 1."""
     share = np.ones(len(ids))
     at, j = _stored_textures(prob, ids)
     if len(at):
@@ -807,7 +807,7 @@ def _textures_of_links(prob: Problem):
     return at, tl.select(j), std[j]
 
 
-def _restore_textures(prob: Problem) -> None:
+def restore_textures(prob: Problem) -> None:
     """Put the stored texture transfers back on TEXTURED links after a re-evaluation."""
     t, tl, std = _textures_of_links(prob)
     links = prob.links
@@ -922,7 +922,7 @@ def _refine(prob: Problem, b_elem: np.ndarray, spread: np.ndarray, eps: float) -
         recv, src = links.recv[fresh], links.src[fresh]
         error, source_error = link_power_errors(prob, links.select(fresh), b_elem, spread)
         if prob.settings.shadow_textures:
-            _texture_links(prob, fresh, error, eps, b_elem)
+            texture_links_wave(prob, fresh, error, eps, b_elem)
             error = error / _texture_error_share(prob, fresh)   # a texture may hold its subtree's share
         can_split = (e.area > prob.min_area) | e.is_cluster(np.arange(len(e)))  # clusters always open
         split_src, split_recv = choose_splits(error + source_error, eps, e.area[recv], e.area[src],

@@ -1,4 +1,4 @@
-"""Shadow-texture links inside the hierarchical solver (shadows.py through solver._texture_links)."""
+"""Shadow-texture links inside the hierarchical solver (shadows.py through solver.texture_links_wave)."""
 
 import numpy as np
 
@@ -25,7 +25,7 @@ def test_textured_links_keep_their_transfer_through_the_fresh_re_estimate():
     """The final fresh-sample pass traces no rays for textured links and restores the texture's
     transfer: F = F_unoccluded * mean visibility, strictly between 0 and F_unoccluded."""
     from mirad.settings import make_settings
-    from mirad.solver import Problem, _restore_textures, _texture_links
+    from mirad.solver import Problem, restore_textures, texture_links_wave
 
     scene = mirad.load_scene(SCENES / "shadow-cases" / "table.xml")
     prob = Problem(scene, make_settings(shadow_textures=True, quiet=True))
@@ -35,14 +35,14 @@ def test_textured_links_keep_their_transfer_through_the_fresh_re_estimate():
     error = np.full(len(fresh), np.inf)
     b = np.ones((len(prob.elements), prob.channels)) * 1e-3
     b[prob.patch_emission.max(1) > 0] = 10.0
-    _texture_links(prob, fresh, error, 1e30, b)
+    texture_links_wave(prob, fresh, error, 1e30, b)
     textured = prob.links.vclass == TEXTURED
     assert textured.any()
     before = prob.links.ff[textured].copy()
     rays_before = prob.rays
     again = prob.evaluate(prob.links.recv, prob.links.src, prob.geometry(), stream=1, vclass=prob.links.vclass)
     prob.links = again
-    _restore_textures(prob)
+    restore_textures(prob)
     np.testing.assert_array_equal(prob.links.ff[textured], before)
     assert np.all((prob.links.vis[textured] > 0) & (prob.links.vis[textured] < 1))
     assert prob.rays > rays_before          # the other links were traced again
