@@ -124,6 +124,14 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     return PointTransfers(g, gv, gp, rays)
 
 
+def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: float):
+    """Exact unoccluded form factor from points x (normals nx) to planar sources s (their
+    polygon ``corners`` and normal ``ns``), scaled by the source's fill; 0 for volume
+    clusters and for points in (or within rounding of) the source's plane or behind it."""
+    front = dr.dot(ns, x - corners[0]) > 0.1 * offset
+    return dr.select(planar & front, point_to_polygon_dr(x, nx, corners) * dr.gather(mi.Float, buf.fill, s), 0.0)
+
+
 def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float):
     m = len(recv)
     k = RECEIVER_POINTS
@@ -143,9 +151,22 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     kind = dr.gather(mi.UInt32, buf.kind, s)
     planar = kind != VOLUME
     area_s = dr.gather(mi.Float, buf.area, s)
-    # a point in (or within rounding of) the source's plane sees nothing of it
-    front = dr.dot(ns, x - corners[0]) > 0.1 * offset
-    g_exact = dr.select(planar & front, point_to_polygon_dr(x, nx, corners) * dr.gather(mi.Float, buf.fill, s), 0.0)
+    if r_count == 1:
+        g_exact = _point_form_factor(buf, x, nx, corners, ns, planar, s, offset)
+    else:
+        # the form factor depends on the point, not the ray: once per point (M K lanes),
+        # then shared by the point's R rays
+        p_lane = dr.arange(mi.UInt32, m * k)
+        p_r = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(recv, np.uint32)), p_lane // k)
+        p_s = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(src, np.uint32)), p_lane // k)
+        p_x = dr.gather(mi.Vector3f, buf.recv_pts, p_r * k + p_lane % k)
+        p_n = dr.gather(mi.Vector3f, buf.recv_nrm, p_r * k + p_lane % k)
+        p_corners = [dr.gather(mi.Vector3f, c, p_s) for c in buf.poly]
+        p_planar = dr.gather(mi.UInt32, buf.kind, p_s) != VOLUME
+        g_point = _point_form_factor(buf, p_x, p_n, p_corners, dr.gather(mi.Vector3f, buf.normal, p_s), p_planar,
+                                     p_s, offset)
+        dr.eval(g_point)
+        g_exact = dr.gather(mi.Float, g_point, lane // r_count)
 
     # --- shadow ray to one of the source's stratified points -------------------------------
     key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
