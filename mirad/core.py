@@ -340,12 +340,46 @@ class Gathered:
     irradiance: np.ndarray
     noise_power: np.ndarray
     iterations: int = 0          # of the solve on the gathered system
+    pairs: int = 0               # (patch, source) pairs gathered
+    system: LeafSystem | None = None   # the gathered system it solved
 
 
 #: Most (patch, link) pairs per final-gather wave (bounds its memory: ~100 B a pair).
 GATHER_CHUNK = 1 << 18
 #: Shadow rays per quadrature point in the final gather.
 GATHER_RAYS = 4
+
+
+def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
+                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Transfers patch <- src (M,) at the patches' points with ``rays`` (M,) shadow rays per
+    point: (form factor with visibility (M,), variance of its visibility noise as irradiance
+    (M,) W^2/m^4, seconds in the waves)."""
+    nodes = state.nodes
+    if state.buffers is None or state.buffers.size != len(nodes):
+        state.buffers = NodeBuffers.upload(nodes)
+    ff_out = np.zeros(len(patch))
+    var = np.zeros(len(patch))
+    seconds = 0.0
+    for count in np.unique(rays):
+        group = np.flatnonzero(rays == count)
+        for a in range(0, len(group), GATHER_CHUNK):
+            idx = group[a:a + GATHER_CHUNK]
+            recv, source = patch[idx], src[idx]
+            t1 = time.perf_counter()
+            pt = evaluate(state.scene.mi_scene, state.buffers, recv, source, rays_per_point=int(count),
+                          seed=state.settings.seed + 0x7E57, offset=state.offset)
+            seconds += time.perf_counter() - t1
+            state.rays += pt.rays
+            w = nodes.recv_w[recv].astype(np.float64)
+            ff = (w * pt.gv).sum(axis=1)
+            ff_unocc = (w * pt.g).sum(axis=1)
+            ff_out[idx] = ff
+            b = solved.b_node[source].max(axis=1)
+            vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+            partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[source] != VOLUME)
+            var[idx] = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * count), 0.0)
+    return ff_out, var, seconds
 
 
 def final_gather(state: State, solved: Solved) -> Gathered:
@@ -369,39 +403,39 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     pair_link = on_face[np.repeat(np.arange(len(on_face)), count)]
     offset = np.arange(len(pair_link)) - np.repeat(np.cumsum(count) - count, count)
     pair_patch = below.indices[np.repeat(start, count) + offset]
-    var = np.zeros(n_patch)
-    if state.buffers is None or state.buffers.size != len(nodes):
-        state.buffers = NodeBuffers.upload(nodes)
-    inner = 0.0
-    g_ff = np.zeros(len(pair_patch))
     # pairs under a link whose own rays all agreed trace one ray per point, the others
     # GATHER_RAYS (shadow edges are where the gather's noise is)
     link_partial = (links.ff < links.ff_unocc) & (links.ff > 0)
-    rays_of_pair = np.where(link_partial[pair_link], GATHER_RAYS, 1)
-    for rays in (1, GATHER_RAYS):
-        group = np.flatnonzero(rays_of_pair == rays)
-        for a in range(0, len(group), GATHER_CHUNK):
-            idx = group[a:a + GATHER_CHUNK]
-            recv, src = pair_patch[idx], links.src[pair_link[idx]]
-            t1 = time.perf_counter()
-            pt = evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays,
-                          seed=state.settings.seed + 0x7E57, offset=state.offset)
-            inner += time.perf_counter() - t1
-            state.rays += pt.rays
-            w = nodes.recv_w[recv].astype(np.float64)
-            ff = (w * pt.gv).sum(axis=1)
-            ff_unocc = (w * pt.g).sum(axis=1)
-            g_ff[idx] = ff
-            b = solved.b_node[src].max(axis=1)
-            vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
-            partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
-            v = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
-            var += np.bincount(recv, weights=v, minlength=n_patch)
+    pair_src = links.src[pair_link]
+    pair_rays = np.where(link_partial[pair_link], GATHER_RAYS, 1)
+    g_ff, g_var, inner = _evaluate_pairs(state, solved, pair_patch, pair_src, pair_rays)
+    # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
+    # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
+    # its size that overhang may be the nearest part: such pairs gather from the source's
+    # children instead, down to rectangles that fit or to triangles
+    for _ in range(tree_depth(nodes)):
+        dist = np.maximum(np.linalg.norm(nodes.center[pair_patch] - nodes.center[pair_src], axis=1)
+                          - nodes.radius[pair_src], 0.0)
+        split = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
+            (nodes.kind[pair_src] == FACE) & (g_ff > 0)
+        if not split.any():
+            break
+        kids = nodes.children[pair_src[split]]
+        own, slot = np.nonzero(kids >= 0)
+        k_patch, k_src, k_rays = pair_patch[split][own], kids[own, slot], pair_rays[split][own]
+        k_ff, k_var, k_inner = _evaluate_pairs(state, solved, k_patch, k_src, k_rays)
+        inner += k_inner
+        pair_patch = np.concatenate([pair_patch[~split], k_patch])
+        pair_src = np.concatenate([pair_src[~split], k_src])
+        pair_rays = np.concatenate([pair_rays[~split], k_rays])
+        g_ff = np.concatenate([g_ff[~split], k_ff])
+        g_var = np.concatenate([g_var[~split], k_var])
+    var = np.bincount(pair_patch, weights=g_var, minlength=n_patch)
     # the system again, with every face-cluster link replaced by its patches' own transfers
     # (P, N): each patch then gathers from the sources' means what reaches its own points,
     # and a cluster's mean, pulled from its patches, is theirs
     n = len(nodes)
-    gathered = sp.csr_matrix((g_ff, (pair_patch, links.src[pair_link])), shape=(n_patch, n))
+    gathered = sp.csr_matrix((g_ff, (pair_patch, pair_src)), shape=(n_patch, n))
     keep = np.flatnonzero(nodes.kind[links.recv] != FACE)
     own = sp.csr_matrix((links.ff[keep].astype(np.float64), (links.recv[keep], links.src[keep])), shape=(n, n))
     patch_of = nodes.patch[leaves]
@@ -422,7 +456,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     noise = EXPECTED_ABS * rho * share * nodes.area[patch_of] * np.sqrt(var[patch_of])
     state.timing["transfer"] += inner
     state.timing["gather"] += time.perf_counter() - t - inner - solve_time
-    return Gathered(h_leaf, noise, int(iterations))
+    return Gathered(h_leaf, noise, int(iterations), len(pair_patch), final)
 
 
 def source_state(state: State, solved: Solved) -> SourceState:

@@ -146,8 +146,12 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
         bound = sphere_form_factor_bound(nodes.center[recv[k]], nodes.radius[recv[k]], nodes.center[src[k]],
                                          nodes.radius[src[k]])
         err[k] = np.maximum(err[k], np.maximum(bound - ff[k], 0.0))
+    # a face-cluster source is its bounding rectangle scaled by its fill: off by about
+    # F (1 - fill) from afar, but from closer than its size the rectangle's overhang (into
+    # its neighbours' area) may be the nearest, brightest part: the whole F is in doubt
     src_face = nodes.kind[src] == FACE
-    err = err + np.where(src_face, ff * (1.0 - nodes.fill[src]), 0.0)
+    overhang = (nodes.fill[src] < 1.0 - 1e-6) & (d <= 2.0 * nodes.radius[src])
+    err = err + np.where(src_face, np.where(overhang, ff, ff * (1.0 - nodes.fill[src])), 0.0)
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
     n_rays = RECEIVER_POINTS * rays.astype(np.float64)
     vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(vis * (1 - vis), 0, 0.25) / n_rays), 0.0)
