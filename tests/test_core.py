@@ -63,3 +63,41 @@ def test_deterministic():
     a = mirad.solve(scene, tolerance=0.1, seed=3, **HIER)
     b = mirad.solve(scene, tolerance=0.1, seed=3, **HIER)
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
+
+
+def _tessellated_furnace(tmp_path, n: int, rho: float) -> dict:
+    """The closed furnace cube with every face an n x n grid of squares (2 n^2 triangles):
+    its face clusters are the median-split pieces of the grids, some of them not rectangles."""
+    import mitsuba as mi
+    import trimesh
+
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    verts = np.stack([-1 + 2 * i.ravel() / n, -1 + 2 * j.ravel() / n, np.zeros((n + 1) ** 2)], 1)
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    v00, v10, v11, v01 = (a * (n + 1) + b).ravel(), ((a + 1) * (n + 1) + b).ravel(), \
+        ((a + 1) * (n + 1) + b + 1).ravel(), (a * (n + 1) + b + 1).ravel()
+    faces = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    path = tmp_path / "grid.ply"
+    trimesh.Trimesh(verts, faces, process=False).export(path)
+    T = mi.ScalarTransform4f
+    sides = {"floor": T().translate([0, 0, -1]), "ceiling": T().translate([0, 0, 1]).rotate([1, 0, 0], 180),
+             "xp": T().translate([1, 0, 0]).rotate([0, 1, 0], -90), "xm": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+             "yp": T().translate([0, 1, 0]).rotate([1, 0, 0], 90), "ym": T().translate([0, -1, 0]).rotate([1, 0, 0], -90)}
+    scene = {"type": "scene"}
+    for name, to_world in sides.items():
+        scene[name] = {"type": "ply", "filename": str(path), "to_world": to_world, "id": name, "face_normals": True,
+                       "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}},
+                       "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1 / np.pi}}}
+    return scene
+
+
+def test_tessellated_furnace_every_triangle_within_tolerance(tmp_path):
+    """B = E / (1 - rho) on every one of 3,072 triangles: face clusters whose rectangles only
+    bound them (fill < 1) once overhung their neighbours and put patches near them 14 % high."""
+    tol = 0.05
+    sol = mirad.solve(_tessellated_furnace(tmp_path, 16, 0.5), tolerance=tol, **HIER)
+    b = sol.triangle_radiosity[:, 0]
+    assert len(b) == 6 * 2 * 16 * 16
+    rel = np.abs(b - 2.0) / 2.0
+    assert rel.max() <= tol
+    assert abs(b.mean() / 2.0 - 1.0) <= 0.01
