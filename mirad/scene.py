@@ -592,9 +592,13 @@ def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | No
             "directional/environment emitter"
         )
     unnamed = [i for i, s in enumerate(shapes) if not s.id()]
-    if unnamed and isinstance(path, str) is False and len(unnamed) == len(shapes):
-        _warn_once(scene, "the mi.Scene has no shape ids (was it loaded with optimize=True, which merges "
-                          "shapes?); load it with mirad.load_scene(path) to keep them")
+    if unnamed and isinstance(path, str) is False:
+        # Mitsuba's loader merges shapes that share a BSDF unless told optimize=False, and the
+        # merged shape has no id: any unnamed shape of a given mi.Scene may be such a merge
+        _warn_once(scene, f"{len(unnamed)} of the mi.Scene's {len(shapes)} shapes have no id (mi.load_file "
+                          "without optimize=False merges shapes that share a BSDF and drops their ids); "
+                          "load the file with mirad.load_scene(path), or mi.load_file(path, optimize=False), "
+                          "to keep every shape's id")
     return scene
 
 

@@ -262,3 +262,16 @@ def test_an_mi_scene_far_away_is_left_alone_with_a_warning():
     with pytest.warns(UserWarning, match="is not moved"):
         scene = mirad.load_scene(mi_scene)
     assert np.all(scene.origin == 0) and np.all(np.array(mi_scene.bbox().min) == before)
+
+
+def test_a_merged_mi_scene_warns_that_ids_were_lost():
+    """mi.load_file without optimize=False merges the Cornell box's shapes that share a BSDF
+    into one shape without an id: the loader says so even though other shapes kept theirs."""
+    from conftest import SCENES
+
+    merged = mi.load_file(str(SCENES / "cornell-box" / "scene.xml"))
+    assert any(not s.id() for s in merged.shapes()) and any(s.id() for s in merged.shapes())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mirad.load_scene(merged)
+    assert any("have no id" in str(w.message) and "optimize=False" in str(w.message) for w in caught)
