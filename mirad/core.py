@@ -36,7 +36,7 @@ from .refine import (EXPECTED_ABS, face_mean_errors, MAX_RAYS_PER_POINT, Links, 
 from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, evaluate
-from .visibility import RAY_OFFSET
+from .arrays import RAY_OFFSET
 
 #: Most points per leaf for the direct light of point/sky emitters.
 MAX_DIRECT_SAMPLES = 1024

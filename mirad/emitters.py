@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .visibility import MAX_LANES, RAY_OFFSET, _v, count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
+from .arrays import MAX_LANES, RAY_OFFSET
+from .visibility import _v, count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402

@@ -58,6 +58,7 @@ import scipy.fft as sfft
 
 from . import _runtime  # noqa: F401
 from .formfactor import point_to_triangle_dr
+from .arrays import MAX_LANES, RAY_OFFSET
 from .visibility import hash_u32, stratified, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -69,11 +70,9 @@ __all__ = ["ShadowTextures", "shadow_textures", "shadow_texture", "ray_visibilit
            "narrowest_penumbra"]
 
 #: Ray origins and ends are moved this fraction of the scene diagonal off the surfaces.
-OFFSET = 1e-5
+OFFSET = RAY_OFFSET
 #: Largest kernel half-width, in texels, as a multiple of the resolution R.
 MAX_MARGIN = 1.0
-#: Lanes per Dr.Jit launch of the mask rays.
-MAX_LANES = 1 << 22
 #: Links per batch of textures (memory: masks and spectra of a batch are a few hundred MB).
 BATCH_LINKS = 256
 #: Kernel supersampling per texel side.

@@ -25,7 +25,8 @@ from .linear import LeafSystem, solve_system
 from .oracle import choose_splits, transfer_bounds
 from .scene import Scene
 from .settings import Settings
-from .visibility import RAY_OFFSET, Geometry, evaluate_links
+from .arrays import RAY_OFFSET
+from .visibility import Geometry, evaluate_links
 
 #: Corners closer than this fraction of the diagonal to a plane count as in the plane.
 PLANE_EPS = 1e-6

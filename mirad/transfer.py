@@ -23,7 +23,8 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .nodes import RECEIVER_POINTS, SOURCE_POINTS, VOLUME, Nodes
-from .visibility import MAX_LANES, RAY_OFFSET, hash_u32
+from .arrays import MAX_LANES
+from .visibility import hash_u32
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402

@@ -17,15 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401
+from .arrays import MAX_LANES, RAY_OFFSET
 from .formfactor import point_to_triangle_dr
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-#: Ray origins are lifted off the surface by this fraction of the scene diagonal.
-RAY_OFFSET = 1e-5
-#: Lanes per Dr.Jit launch (bounds memory: ~0.3 KB per lane in flight).
-MAX_LANES = 1 << 22
+# RAY_OFFSET (fraction of the scene diagonal rays are lifted off surfaces) and MAX_LANES
+# (lanes per Dr.Jit launch) have their one home in arrays.py
 
 
 def _f(a) -> "mi.Float":

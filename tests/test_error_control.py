@@ -11,7 +11,8 @@ from mirad.oracle import transfer_bounds
 from mirad.settings import make_settings
 from mirad.shaft import BLOCKED, PARTIAL, VISIBLE, ShaftCuller, lift, prove_blocked
 from mirad.solver import Problem
-from mirad.visibility import RAY_OFFSET, evaluate_links
+from mirad.arrays import RAY_OFFSET
+from mirad.visibility import evaluate_links
 
 T = mi.ScalarTransform4f
 
