@@ -562,8 +562,11 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     t_start = time.perf_counter()
     state = build(scene, settings)
     link(state)
-    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)
     nodes = state.nodes
+    # one wave per pass: a link reaches the input triangles in as many passes as the tree
+    # is deep, so the pass budget is max_refine_passes beyond that depth
+    max_passes = settings.max_refine_passes + tree_depth(nodes)
+    bar = tqdm(total=max_passes + 1, desc="mirad", unit="pass", disable=settings.quiet)
     # open the volume clusters that hold emitters before the first solve (their error is inf)
     empty = SourceState(np.zeros(len(nodes)), np.zeros(len(nodes)), np.zeros(len(nodes)))
     _, capped = refine(state, empty, np.finfo(float).max, max_links)
@@ -572,9 +575,6 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     iterations = solved.iterations
     bar.update(1)
     passes = 0
-    # one wave per pass: a link reaches the input triangles in as many passes as the tree
-    # is deep, so the pass budget is max_refine_passes beyond that depth
-    max_passes = settings.max_refine_passes + tree_depth(nodes)
     history = []
     try:
         while True:
@@ -602,6 +602,9 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
             solved = solve(state, solved)
             iterations += solved.iterations
     finally:
+        # the passes it took are the whole bar, which stays with the final estimate
+        bar.total = bar.n
+        bar.refresh()
         bar.close()
     gathered = final_gather(state, solved)
     # the final gather's own visibility noise adds to the estimate of the output

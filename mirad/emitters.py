@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .arrays import MAX_LANES, RAY_OFFSET
-from .visibility import _v, count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
+from .arrays import MAX_LANES, RAY_OFFSET, to_vector3
+from .visibility import count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -45,7 +45,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
     lane = dr.arange(mi.UInt32, m * n)
     idx = lane // n
     k = lane % n
-    g = lambda a: dr.gather(mi.Vector3f, _v(a), idx)  # noqa: E731
+    g = lambda a: dr.gather(mi.Vector3f, to_vector3(a), idx)  # noqa: E731
     v0, v1, v2, nrm = g(verts[:, 0]), g(verts[:, 1]), g(verts[:, 2]), g(normals)
     center, axis = g(curve[0]), g(curve[1])
     radius = dr.gather(mi.Float, mi.Float(np.asarray(curve[2], np.float32)), idx)

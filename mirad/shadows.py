@@ -58,7 +58,7 @@ import scipy.fft as sfft
 
 from . import _runtime  # noqa: F401
 from .formfactor import point_to_triangle_dr
-from .arrays import MAX_LANES, RAY_OFFSET
+from .arrays import MAX_LANES, RAY_OFFSET, to_float, to_vector3
 from .visibility import hash_u32, stratified, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -79,15 +79,6 @@ BATCH_LINKS = 256
 SUPERSAMPLE = 4
 #: A depth layer's penumbra-width spread may reach this many texels ("auto" layers).
 LAYER_TEXELS = 2.0
-
-
-def _f(a):
-    return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
-
-
-def _v(a):
-    a = np.asarray(a, dtype=np.float32)
-    return mi.Vector3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
 
 
 # ------------------------------------------------------------------------------------------
@@ -220,7 +211,7 @@ def _trace_depths(mi_scene, src_centre, o, e_u, e_v, resolution: int, margin: in
         i, j = t // g, t % g
         u = (mi.Float(i) - margin + 0.5) * (1.0 / resolution)
         v = (mi.Float(j) - margin + 0.5) * (1.0 / resolution)
-        gat = lambda a: dr.gather(mi.Vector3f, _v(a[start:stop]), link)  # noqa: E731
+        gat = lambda a: dr.gather(mi.Vector3f, to_vector3(a[start:stop]), link)  # noqa: E731
         c, y = gat(src_centre), gat(o) + gat(e_u) * u + gat(e_v) * v
         d = y - c
         length = dr.norm(d)
@@ -575,12 +566,12 @@ def shadow_texture(mi_scene, source_verts, receiver_verts, resolution: int = 64,
 def point_form_factor(points: np.ndarray, normals: np.ndarray, source_verts: np.ndarray) -> np.ndarray:
     """(P,) unoccluded form factor dA(points, normals) -> source triangle or parallelogram (Dr.Jit),
     zero where the point lies behind the source."""
-    x, nx = _v(points), _v(normals)
-    s0, s1, s2 = (_v(source_verts[:, i]) for i in range(3))
+    x, nx = to_vector3(points), to_vector3(normals)
+    s0, s1, s2 = (to_vector3(source_verts[:, i]) for i in range(3))
     src_n = dr.cross(s1 - s0, s2 - s0)
     front = dr.dot(src_n, x - s0) > 0
     if source_verts.shape[1] == 4:
-        s3 = _v(source_verts[:, 3])
+        s3 = to_vector3(source_verts[:, 3])
         f = point_to_triangle_dr(x, nx, s0, s1, s2) + point_to_triangle_dr(x, nx, s0, s2, s3)
     else:
         f = point_to_triangle_dr(x, nx, s0, s1, s2)
@@ -608,8 +599,8 @@ def ray_visibility(mi_scene, source_verts, points, normals, *, rays: int = 256, 
     lane = dr.arange(mi.UInt32, p * rays)
     pt = lane // rays
     k = lane % rays
-    x = dr.gather(mi.Vector3f, _v(points), pt)
-    nx = dr.gather(mi.Vector3f, _v(normals), pt)
+    x = dr.gather(mi.Vector3f, to_vector3(points), pt)
+    nx = dr.gather(mi.Vector3f, to_vector3(normals), pt)
     key = hash_u32(hash_u32(pt + hash_u32(mi.UInt32(seed) + 0x51ED27)) + k * 0x632BE5AB)
     u, v = stratified(k, rays, key)
     s0, s1, s2 = (mi.Vector3f(*map(float, c)) for c in src[:3])

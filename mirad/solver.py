@@ -399,7 +399,7 @@ def solve_problem(scene: Scene, settings: Settings):
     if prob.clusters is None and 2 * patches * (patches - 1) > prob.max_links:   # else no pair count can pass
         check_link_budget(scene, _facing_pair_count(prob), prob.max_links,
                           f"without clusters every pair of the {patches:,} patches facing each other is linked")
-    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet, leave=False)
+    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet)
 
     # --- initial linking and first solve ------------------------------------------------------
     t = time.perf_counter()
@@ -482,6 +482,9 @@ def solve_problem(scene: Scene, settings: Settings):
             if fresh <= settings.tolerance or stalled or capped or passes >= settings.max_refine_passes:
                 break
     finally:
+        # the passes it took are the whole bar, which stays with the final estimate
+        bar.total = bar.n
+        bar.refresh()
         bar.close()
         if prob._executor is not None:
             prob._executor.close()

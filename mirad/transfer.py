@@ -23,22 +23,13 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .nodes import RECEIVER_POINTS, SOURCE_POINTS, VOLUME, Nodes
-from .arrays import MAX_LANES
+from .arrays import MAX_LANES, to_float, to_vector3
 from .visibility import hash_u32
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 _TINY = 1e-30
-
-
-def _f(a) -> "mi.Float":
-    return mi.Float(np.ascontiguousarray(np.ravel(a), dtype=np.float32))
-
-
-def _vec(a) -> "mi.Vector3f":
-    a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
 
 
 @dataclass
@@ -58,9 +49,12 @@ class NodeBuffers:
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
-        return cls(len(nodes), tuple(_vec(nodes.poly[:, k]) for k in range(4)), _vec(nodes.normal), _f(nodes.fill),
-                   _f(nodes.area), mi.UInt32(nodes.kind.astype(np.uint32)), _vec(nodes.recv_pts),
-                   _vec(nodes.recv_nrm), _vec(nodes.src_pts), _vec(nodes.src_nrm))
+        def points(a):          # (N, ...) -> every point's (x, y, z), node-major
+            return to_vector3(np.asarray(a).reshape(-1, 3))
+
+        return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
+                   to_float(nodes.fill), to_float(nodes.area), mi.UInt32(nodes.kind.astype(np.uint32)),
+                   points(nodes.recv_pts), points(nodes.recv_nrm), points(nodes.src_pts), points(nodes.src_nrm))
 
 
 @dataclass

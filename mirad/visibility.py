@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .arrays import MAX_LANES, RAY_OFFSET
+from .arrays import MAX_LANES, RAY_OFFSET, to_float, to_vector3
 from .formfactor import point_to_triangle_dr
 
 import drjit as dr  # noqa: E402
@@ -25,15 +25,6 @@ import mitsuba as mi  # noqa: E402
 
 # RAY_OFFSET (fraction of the scene diagonal rays are lifted off surfaces) and MAX_LANES
 # (lanes per Dr.Jit launch) have their one home in arrays.py
-
-
-def _f(a) -> "mi.Float":
-    return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
-
-
-def _v(a) -> "mi.Vector3f":
-    a = np.asarray(a, dtype=np.float32)
-    return mi.Vector3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
 
 
 @dataclass
@@ -56,8 +47,9 @@ class Geometry:
 
     @classmethod
     def upload(cls, verts, normal, curve_center, curve_axis, curve_radius, diagonal) -> "Geometry":
-        return cls(_v(verts[:, 0]), _v(verts[:, 1]), _v(verts[:, 2]), _v(normal), _v(curve_center),
-                   _v(curve_axis), _f(curve_radius), float(RAY_OFFSET * diagonal), len(verts))
+        return cls(to_vector3(verts[:, 0]), to_vector3(verts[:, 1]), to_vector3(verts[:, 2]), to_vector3(normal),
+                   to_vector3(curve_center), to_vector3(curve_axis), to_float(curve_radius),
+                   float(RAY_OFFSET * diagonal), len(verts))
 
     def gather(self, idx):
         """Corners, normal and curve data of elements idx (mi.UInt32)."""
@@ -402,13 +394,13 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
     """
     n_pts, n_leaf = len(points), geo.size
     channels = radiosity.shape[1]
-    b_dr = [_f(radiosity[:, c]) for c in range(channels)]
+    b_dr = [to_float(radiosity[:, c]) for c in range(channels)]
     pts_per_launch = max(1, MAX_LANES // max(1, n_leaf * rays))
     out = np.zeros((n_pts, channels))
     for start in range(0, n_pts, pts_per_launch):
         stop = min(n_pts, start + pts_per_launch)
         m = stop - start
-        p_dr, n_dr = _v(points[start:stop]), _v(normals[start:stop])
+        p_dr, n_dr = to_vector3(points[start:stop]), to_vector3(normals[start:stop])
         lane = dr.arange(mi.UInt32, m * n_leaf * rays)
         k = lane % rays
         pair = lane // rays
