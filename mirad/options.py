@@ -14,7 +14,7 @@ import dataclasses
 import re
 
 from .errors import SettingsError
-from .settings import CORES, ORACLES, SOLVERS, SWITCHES, Settings
+from .settings import CORES, MAX_SAMPLES_PER_LINK, ORACLES, SOLVERS, SWITCHES, Settings
 
 __all__ = ["Option", "SOLVE", "RENDER", "PLUGIN", "add_arguments", "given", "check_render"]
 
@@ -125,6 +125,9 @@ def check_render(*, spp=None, gather_rays=None, smooth=None, final_gather=None) 
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or int(value) != value or value < 1):
             raise SettingsError(f"{name}={value!r} must be an integer >= 1 (e.g. {default(name)})")
+        if value is not None and value > MAX_SAMPLES_PER_LINK:
+            raise SettingsError(f"{name}={value!r} is more than a render pass of bounded memory holds; give at most "
+                                f"{MAX_SAMPLES_PER_LINK} (e.g. {default(name)}) and average several renders for more")
     for name, value in (("smooth", smooth), ("final_gather", final_gather)):
         if value is not None and not isinstance(value, bool):
             raise SettingsError(f"{name}={value!r} must be True or False")

@@ -230,3 +230,25 @@ def test_ctrl_c_during_a_solve_leaves_no_file_and_a_clean_message(tmp_path):
     assert proc.returncode == 130
     assert "interrupted; no output was written" in err and "Traceback" not in seen + err
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("options, words", [
+    ({"tolerance": "0.1"}, ["tolerance='0.1'", "must be a number"]),
+    ({"tolerance": float("nan")}, ["tolerance=nan", "finite"]),
+    ({"samples_per_link": 1.5}, ["samples_per_link=1.5", "integer"]),
+    ({"quiet": "false"}, ["quiet='false'", "True or False"]),
+    ({"samples_per_link": 10 ** 9}, ["samples_per_link=1000000000", "at most 65536"]),
+])
+def test_settings_of_the_wrong_type_or_size_name_the_option(options, words):
+    with pytest.raises(mirad.SettingsError) as caught:
+        mirad.solve(SCENES / "cornell-box" / "scene.xml", **options)
+    assert all(w in str(caught.value) for w in words)
+
+
+def test_cli_refuses_a_render_pass_memory_cannot_hold(tmp_path):
+    # 1e9 samples per pixel failed inside Dr.Jit with a custom-operation error naming nothing
+    result = run_cli("render", str(SCENES / "cornell-box" / "scene.xml"), "--spp", "1000000000", "--tolerance", "0.3",
+                     "-o", str(tmp_path / "x.exr"))
+    assert result.returncode == 2
+    assert "spp=1000000000" in result.stderr and "Traceback" not in result.stderr
+    assert not list(tmp_path.iterdir())
