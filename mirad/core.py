@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,8 +31,8 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
-from .refine import (EXPECTED_ABS, face_mean_errors, MAX_RAYS_PER_POINT, Links, SourceState, choose, link_values, power_errors,
-                     refinement_threshold)
+from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
+                     face_mean_errors, link_values, power_errors, refinement_threshold)
 from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, evaluate
@@ -341,7 +341,6 @@ class Gathered:
     noise_power: np.ndarray
     iterations: int = 0          # of the solve on the gathered system
     pairs: int = 0               # (patch, source) pairs gathered
-    system: LeafSystem | None = None   # the gathered system it solved
 
 
 #: Most (patch, link) pairs per final-gather wave (bounds its memory: ~100 B a pair).
@@ -394,7 +393,6 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     """
     t = time.perf_counter()
     nodes, links, leaves = state.nodes, state.links, solved.leaves
-    channels = state.channels
     n_patch = len(state.surface.verts)
     on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
     below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
@@ -414,8 +412,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
     for _ in range(tree_depth(nodes)):
-        dist = np.maximum(np.linalg.norm(nodes.center[pair_patch] - nodes.center[pair_src], axis=1)
-                          - nodes.radius[pair_src], 0.0)
+        dist = distance_to_source(nodes, pair_patch, pair_src)
         split = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
             (nodes.kind[pair_src] == FACE) & (g_ff > 0)
         if not split.any():
@@ -444,19 +441,18 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     final = LeafSystem(sp.hstack([system.push, to_patch]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
                        system.rho, system.emission)
     t1 = time.perf_counter()
-    b, iterations, residual = solve_system(final, solved.b_leaf, method=state.settings.solver,
+    b, iterations, _ = solve_system(final, solved.b_leaf, method=state.settings.solver,
                                            tol=state.settings.solver_tolerance,
                                            max_iterations=state.settings.max_iterations)
     solve_time = time.perf_counter() - t1
     state.timing["solve"] += solve_time
     h_leaf = final.gather(np.maximum(b, 0.0))
-    rho = state.patch_rho[nodes.patch[leaves]].max(axis=1)
-    # a patch's noise spread over its leaves by area
-    share = nodes.area[leaves] / np.maximum(nodes.area[patch_of], 1e-300)
-    noise = EXPECTED_ABS * rho * share * nodes.area[patch_of] * np.sqrt(var[patch_of])
+    rho = state.patch_rho[patch_of].max(axis=1)
+    # a patch's noise, spread over its leaves by area
+    noise = EXPECTED_ABS * rho * nodes.area[leaves] * np.sqrt(var[patch_of])
     state.timing["transfer"] += inner
     state.timing["gather"] += time.perf_counter() - t - inner - solve_time
-    return Gathered(h_leaf, noise, int(iterations), len(pair_patch), final)
+    return Gathered(h_leaf, noise, int(iterations), len(pair_patch))
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -482,7 +478,14 @@ def source_state(state: State, solved: Solved) -> SourceState:
     np.maximum.at(below, pull.row, b_leaf[pull.col].max(axis=1))
     leaf_area = state.nodes.area[solved.leaves]
     rho_mean = float((leaf_area * solved.system.rho.max(axis=1)).sum() / max(leaf_area.sum(), 1e-300))
-    return SourceState(b_node.max(axis=1), below, dev, rho_mean * amplification(state, solved))
+    source = SourceState(b_node.max(axis=1), below, dev, rho_mean * amplification(state, solved))
+    # face clusters' mean errors are sampling errors of unbiased estimates: summed per
+    # receiver (its points are shared by its links), in quadrature over receivers
+    raw = face_mean_errors(state.nodes, links, source, weighted=False)
+    face = state.nodes.kind[links.recv] == FACE
+    per_recv = np.bincount(links.recv[face], weights=raw[face], minlength=n)
+    quad = float(np.sqrt(np.sum(per_recv ** 2)))
+    return replace(source, mean_weight=per_recv / quad if quad > 0 else np.zeros(n))
 
 
 def amplification(state: State, solved: Solved) -> float:
@@ -524,15 +527,7 @@ class Estimate:
 def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
     """Stage estimate: summed link and direct-light power errors over A_total * mean(B - E)."""
     t = time.perf_counter()
-    nodes, links = state.nodes, state.links
-    # face clusters' mean errors are sampling errors of unbiased estimates: summed per
-    # receiver (its points are shared by its links), in quadrature over receivers
-    raw = face_mean_errors(nodes, links, source, weighted=False)
-    face = nodes.kind[links.recv] == FACE
-    per_recv = np.bincount(links.recv[face], weights=raw[face], minlength=len(nodes))
-    quad = float(np.sqrt(np.sum(per_recv ** 2)))
-    source.mean_weight = per_recv / quad if quad > 0 else np.zeros(len(nodes))
-    receiver, src = power_errors(nodes, links, source)
+    receiver, src = power_errors(state.nodes, state.links, source)
     d = direct_power_errors(state, solved.leaves) if state.scene.light_emitters else np.zeros(len(solved.leaves))
     mean = reflected_mean(state, solved)
     total = float(np.sum(receiver + src)) + float(d.sum())
@@ -654,7 +649,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "visibility_classes": {"partial": int(np.count_nonzero(state.links.vis_std > 0)),
                                "links": int(len(state.links))},
         "solver": settings.solver,
-        "solver_iterations": int(iterations),
+        "solver_iterations": int(iterations + gathered.iterations),
+        "gather_pairs": int(gathered.pairs),
         "solver_residual": float(solved.residual),
         "refine_passes": int(passes),
         "clusters": int(np.count_nonzero(kinds != TRIANGLE)),

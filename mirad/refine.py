@@ -23,9 +23,9 @@ the source's brightest channel (``power_errors``):
 where p is 1 on triangles and, on face clusters, the share of an error in the cluster's
 mean that reaches the output (``SourceState.propagation``: it is reflected once more
 elsewhere, then amplified by interreflection; the face clusters' sampling errors add in
-quadrature over receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s| over the source's leaves (the link carries the
-source's mean; the kernel's relative change across the source, at most its size over its
-distance, turns that into a transfer error). A volume-cluster source has no exact
+quadrature over receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s|
+over the source's leaves (the link carries the source's mean; the kernel's relative change
+across the source, at most its size over its distance, turns that into a transfer error). A volume-cluster source has no exact
 transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
 the brightest leaf below, Smits-Arvo-Greenberg), so it opens wherever it matters; a
 cluster holding an emitter always opens.
@@ -119,7 +119,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     # C (h/d)^6, hence the (h/d)^3 factor (capped at 1). d is the distance to the nearest
     # part of the source (its bounding sphere), not to its centre: a triangle in the corner
     # of a large wall is next to the light it gets, where the kernel is steepest
-    d = np.maximum(np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1) - nodes.radius[src], 0.0)
+    d = distance_to_source(nodes, recv, src)
     h = nodes.radius[recv]
     order_gain = np.minimum(1.0, (h / np.maximum(d, 1e-12 * np.maximum(h, 1e-300))) ** 3)
     low = (g * EMBEDDED_WEIGHTS[None]).sum(axis=1)
@@ -158,6 +158,12 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16))
+
+
+def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) m: from each receiver's centre to the nearest point of its source's bounding
+    sphere (0 inside it)."""
+    return np.maximum(np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1) - nodes.radius[src], 0.0)
 
 
 def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:

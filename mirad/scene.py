@@ -21,6 +21,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from ._runtime import choose_variant
+from .arrays import scene_diagonal
 from .errors import SceneError
 
 import drjit as dr  # noqa: E402
@@ -127,9 +128,7 @@ class Scene:
     @property
     def diagonal(self) -> float:
         """Length of the scene bounding-box diagonal, m (the unit of every epsilon)."""
-        lo = self.vertices.min(axis=0)
-        hi = self.vertices.max(axis=0)
-        return float(np.linalg.norm(hi - lo)) or 1.0
+        return scene_diagonal(self.vertices)
 
     @property
     def tri_vertices(self) -> np.ndarray:
@@ -324,7 +323,7 @@ def _recentre(mi_scene, where: str, *, own: bool) -> tuple[np.ndarray, list]:
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         return np.zeros(3), []
     centre = 0.5 * (lo + hi)
-    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    diag = scene_diagonal(np.stack([lo, hi]))
     far = float(np.abs(np.concatenate([lo, hi])).max())
     notes = []
     rounding = far * 2.0 ** -24

@@ -58,7 +58,7 @@ import scipy.fft as sfft
 
 from . import _runtime  # noqa: F401
 from .formfactor import point_to_triangle_dr
-from .arrays import MAX_LANES, RAY_OFFSET, to_float, to_vector3
+from .arrays import MAX_LANES, RAY_OFFSET, scene_diagonal, to_float, to_vector3
 from .visibility import hash_u32, stratified, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -105,7 +105,7 @@ def _frame(src: np.ndarray, rcv: np.ndarray):
 def _offset(mi_scene) -> float:
     """Ray offset off the surfaces, metres: OFFSET times the scene diagonal."""
     bbox = mi_scene.bbox()
-    return OFFSET * (float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))) or 1.0)
+    return OFFSET * scene_diagonal(np.array([bbox.min, bbox.max], dtype=np.float64))
 
 
 def texel_uv(resolution: int) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .nodes import RECEIVER_POINTS, SOURCE_POINTS, VOLUME, Nodes
-from .arrays import MAX_LANES, to_float, to_vector3
+from .arrays import MAX_LANES, to_float, to_uint, to_vector3
 from .visibility import hash_u32
 
 import drjit as dr  # noqa: E402
@@ -135,8 +135,9 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     link = lane // per_link
     i = (lane // r_count) % k
     j = lane % r_count
-    r = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(recv, np.uint32)), link)
-    s = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(src, np.uint32)), link)
+    recv_dr, src_dr = to_uint(recv), to_uint(src)
+    r = dr.gather(mi.UInt32, recv_dr, link)
+    s = dr.gather(mi.UInt32, src_dr, link)
 
     # --- receiver point and the source's geometry ----------------------------------------
     x = dr.gather(mi.Vector3f, buf.recv_pts, r * k + i)
@@ -152,8 +153,8 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
         # the form factor depends on the point, not the ray: once per point (M K lanes),
         # then shared by the point's R rays
         p_lane = dr.arange(mi.UInt32, m * k)
-        p_r = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(recv, np.uint32)), p_lane // k)
-        p_s = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(src, np.uint32)), p_lane // k)
+        p_r = dr.gather(mi.UInt32, recv_dr, p_lane // k)
+        p_s = dr.gather(mi.UInt32, src_dr, p_lane // k)
         p_x = dr.gather(mi.Vector3f, buf.recv_pts, p_r * k + p_lane % k)
         p_n = dr.gather(mi.Vector3f, buf.recv_nrm, p_r * k + p_lane % k)
         p_corners = [dr.gather(mi.Vector3f, c, p_s) for c in buf.poly]
