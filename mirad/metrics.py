@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .arrays import group_mean, group_sum
+
 __all__ = ["relative_l1", "relative_rms", "relative_linf", "noise_floor", "shape_errors",
            "image_relative_mse", "image_noise_floor", "compare", "SQRT_2_OVER_PI"]
 
@@ -117,14 +119,11 @@ def shape_errors(value, reference, *, area, shape, stderr=None, names=None) -> l
     count = int(shape.max()) + 1 if len(shape) else 0
     weight = np.bincount(shape, weights=area, minlength=count)
     rows = []
-    mean_v = np.stack([np.bincount(shape, weights=area * value[:, c], minlength=count)
-                       for c in range(value.shape[1])], 1) / np.maximum(weight, 1e-300)[:, None]
-    mean_r = np.stack([np.bincount(shape, weights=area * reference[:, c], minlength=count)
-                       for c in range(value.shape[1])], 1) / np.maximum(weight, 1e-300)[:, None]
+    mean_v = group_mean(shape, value, count, weights=area)
+    mean_r = group_mean(shape, reference, count, weights=area)
     if stderr is not None:
         s = np.asarray(stderr, dtype=np.float64).reshape(reference.shape)
-        var = np.stack([np.bincount(shape, weights=(area * s[:, c]) ** 2, minlength=count)
-                        for c in range(value.shape[1])], 1)
+        var = group_sum(shape, (area[:, None] * s) ** 2, count)
         se = np.sqrt(var) / np.maximum(weight, 1e-300)[:, None]
     tri_count = np.bincount(shape, minlength=count)
     for k in range(count):

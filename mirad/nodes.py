@@ -30,6 +30,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from .arrays import group_mean, group_sum
 from .cluster import build_tree
 
 TRIANGLE, FACE, VOLUME = 0, 1, 2
@@ -163,9 +164,8 @@ def build_nodes(surf: Surface) -> tuple[Nodes, np.ndarray, int]:
     group = planar_groups(surf)
     n_groups = int(group.max()) + 1
     # --- volume tree over the planar groups ----------------------------------------------
-    g_area = np.bincount(group, weights=area, minlength=n_groups)
-    g_cent = np.stack([np.bincount(group, weights=area * surf.verts[:, :, k].mean(axis=1), minlength=n_groups)
-                       for k in range(3)], 1) / np.maximum(g_area, 1e-300)[:, None]
+    g_area = group_sum(group, area, n_groups)
+    g_cent = group_mean(group, surf.verts.mean(axis=1), n_groups, weights=area)
     vtree = build_tree(g_cent, g_area) if n_groups > 1 else None
     g_rank = np.empty(n_groups, np.int64)
     g_rank[vtree.order if vtree is not None else np.arange(n_groups)] = np.arange(n_groups)
