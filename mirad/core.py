@@ -9,9 +9,11 @@ Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
     direct      point/spot/directional/environment light on each leaf (emitters.py)
     solve       B = E + rho (push F pull) B on the leaves (linear.py), warm-started
     estimate    summed link power errors over A_total * mean(B - E)
-    gather      after the last solve: every input patch under a face-cluster receiver
-                evaluates that cluster's links again at its own points and rays
-                (``final_gather``); its visibility noise is added to the estimate
+    gather      after the last solve: each face-cluster link descends its receiver's tree
+                until the light it brings is linear and unshadowed over a node (then the
+                patches below take the fit) or reaches the input patches (which evaluate
+                it at their own points and rays) (``final_gather``); the fits' residuals
+                and the visibility noise are added to the estimate
 
 Multigridding: after each solve the link errors are recomputed from the new radiosity;
 eps is set so that the links under it hold at most half the error budget
@@ -335,18 +337,43 @@ def solve(state: State, previous: Solved | None) -> Solved:
 @dataclass
 class Gathered:
     """The final gather: irradiance of the leaves (L, C) W/m^2 and the standard error of
-    its visibility sampling as power (L,) W."""
+    its visibility sampling and of its linear fits as power (L,) W."""
 
     irradiance: np.ndarray
     noise_power: np.ndarray
     iterations: int = 0          # of the solve on the gathered system
-    pairs: int = 0               # (patch, source) pairs gathered
+    pairs: int = 0               # (receiver, source) pairs evaluated
 
 
-#: Most (patch, link) pairs per final-gather wave (bounds its memory: ~100 B a pair).
+#: Most (receiver, source) pairs per final-gather wave (bounds its memory: ~100 B a pair).
 GATHER_CHUNK = 1 << 18
 #: Shadow rays per quadrature point in the final gather.
 GATHER_RAYS = 4
+#: Share of the tolerance that interpolating a smooth link over a face cluster may cost,
+#: relative to the light that link brings (see ``smooth_links``).
+GATHER_SHARE = 0.25
+
+
+def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
+    """Transfers recv <- src (M,) at the receivers' K points with ``rays`` (M,) shadow rays
+    per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
+    point's own visibility (M, K), seconds in the waves)."""
+    nodes = state.nodes
+    if state.buffers is None or state.buffers.size != len(nodes):
+        state.buffers = NodeBuffers.upload(nodes)
+    out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(3)]
+    seconds = 0.0
+    for count in np.unique(rays):
+        group = np.flatnonzero(rays == count)
+        for a in range(0, len(group), GATHER_CHUNK):
+            idx = group[a:a + GATHER_CHUNK]
+            t1 = time.perf_counter()
+            pt = evaluate(state.scene.mi_scene, state.buffers, recv[idx], src[idx], rays_per_point=int(count),
+                          seed=state.settings.seed + 0x7E57, offset=state.offset)
+            seconds += time.perf_counter() - t1
+            state.rays += pt.rays
+            out[0][idx], out[1][idx], out[2][idx] = pt.g, pt.gv, pt.gv_point
+    return out[0], out[1], out[2], seconds
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
@@ -355,58 +382,123 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     point: (form factor with visibility (M,), variance of its visibility noise as irradiance
     (M,) W^2/m^4, seconds in the waves)."""
     nodes = state.nodes
-    if state.buffers is None or state.buffers.size != len(nodes):
-        state.buffers = NodeBuffers.upload(nodes)
-    ff_out = np.zeros(len(patch))
-    var = np.zeros(len(patch))
-    seconds = 0.0
-    for count in np.unique(rays):
-        group = np.flatnonzero(rays == count)
-        for a in range(0, len(group), GATHER_CHUNK):
-            idx = group[a:a + GATHER_CHUNK]
-            recv, source = patch[idx], src[idx]
-            t1 = time.perf_counter()
-            pt = evaluate(state.scene.mi_scene, state.buffers, recv, source, rays_per_point=int(count),
-                          seed=state.settings.seed + 0x7E57, offset=state.offset)
-            seconds += time.perf_counter() - t1
-            state.rays += pt.rays
-            w = nodes.recv_w[recv].astype(np.float64)
-            ff = (w * pt.gv).sum(axis=1)
-            ff_unocc = (w * pt.g).sum(axis=1)
-            ff_out[idx] = ff
-            b = solved.b_node[source].max(axis=1)
-            vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
-            partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[source] != VOLUME)
-            var[idx] = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * count), 0.0)
-    return ff_out, var, seconds
+    g, gv, _, seconds = _point_values(state, patch, src, rays)
+    w = nodes.recv_w[patch].astype(np.float64)
+    ff = (w * gv).sum(axis=1)
+    ff_unocc = (w * g).sum(axis=1)
+    b = solved.b_node[src].max(axis=1)
+    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+    var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
+    return ff, var, seconds
+
+
+def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
+    """Least-squares linear fields v(x) = a + g . (x - x0) in the planes of receivers recv
+    (M,) through values (M, K) at their K points.
+
+    Returns x0 (M, 3), a (M,), g (M, 3) (in the plane) and the residual's standard
+    deviation (M,) with K - 3 degrees of freedom, in the values' units."""
+    ids, inverse = np.unique(recv, return_inverse=True)
+    points = nodes.recv_pts[ids].astype(np.float64)
+    normal = nodes.normal[ids]
+    x0 = points.mean(axis=1)
+    d = points - x0[:, None]
+    d = d - np.einsum("mkc,mc->mk", d, normal)[..., None] * normal[:, None]
+    design = np.concatenate([np.ones(d.shape[:2] + (1,)), d], axis=2)        # (U, K, 4), rank <= 3
+    fit = np.linalg.pinv(design)                                              # (U, 4, K)
+    coef = np.einsum("mpk,mk->mp", fit[inverse], values)
+    resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
+    dof = max(values.shape[1] - 3, 1)
+    return x0[inverse], coef[:, 0], coef[:, 1:], np.sqrt((resid * resid).sum(axis=1) / dof)
+
+
+def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray, gv: np.ndarray,
+                 b_src: np.ndarray, h_recv: np.ndarray, tolerance: float):
+    """Which links recv <- src (M,) on face clusters bring light whose field over the
+    receiver is linear and unshadowed, within their share of the tolerance.
+
+    g, gv (M, K): unoccluded transfer and transfer with each point's own visibility at the
+    receiver's points; b_src (M,) the source's radiosity, h_recv (M,) the receiver's whole
+    irradiance (W/m^2). The fit's residual s_l is the link's interpolation error; links on one
+    receiver err independently, so their errors add in quadrature, and
+    (s_l b_l)^2 <= (GATHER_SHARE tol h)^2 F_l b_l / h for each keeps the receiver's whole
+    interpolation error within GATHER_SHARE tol h. Such a link's share of each patch below
+    the receiver is its linear fit at the patch's centroid: no shadow rays below this level.
+    Returns (smooth (M,) bool, x0, a, grad, rms) of the fits (``linear_fit``)."""
+    x0, a, grad, rms = linear_fit(nodes, recv, gv.astype(np.float64))
+    mean = (nodes.recv_w[recv] * gv).sum(axis=1)
+    # every point sees the whole source (in front of it, no ray blocked): a field cut by a
+    # shadow or by the receiver's horizon is not linear, and points that all missed a
+    # source say nothing about the patches between them
+    seen = ((g > 0) & (gv >= g * (1 - 1e-6))).all(axis=1)
+    # a rectangle that only bounds its cluster, nearer than its size: its overhang is not light
+    near_overhang = (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src) <= 2.0 * nodes.radius[src])
+    allowed = GATHER_SHARE * tolerance * np.sqrt(np.maximum(h_recv * mean * b_src, 0.0))
+    smooth = seen & ~near_overhang & (nodes.kind[src] != VOLUME) & (rms * b_src <= allowed)
+    return smooth, x0, a, grad, rms
 
 
 def final_gather(state: State, solved: Solved) -> Gathered:
-    """Stage gather: the light of links on face clusters, gathered again at each input
-    patch's own quadrature points from the sources' solved radiosity.
+    """Stage gather: the light of links on face clusters, gathered again on each input
+    patch from the sources' solved radiosity.
 
     A face cluster receives its links' light as one mean; pushed down unchanged, every
-    triangle below would get that mean. Here each input patch below it evaluates those links
-    itself (exact unoccluded form factor and its own shadow rays), so receivers can stay
+    triangle below would get that mean. Here each link descends the receiver's tree: where
+    the light it brings is linear over a node (``smooth_links``), each patch below takes
+    that linear field at its centroid; elsewhere (shadows, nearby sources) the node's
+    children evaluate the link at their own points, down to the input patches, which
+    evaluate it with their own quadrature points and shadow rays. Receivers can so stay
     coarse where the light is smooth while every input triangle still gets its own share,
     shadows included. Links on a patch or on its parts are already the patch's own.
     """
     t = time.perf_counter()
     nodes, links, leaves = state.nodes, state.links, solved.leaves
     n_patch = len(state.surface.verts)
-    on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
     below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
-    start = below.indptr[links.recv[on_face]]
-    count = below.indptr[links.recv[on_face] + 1] - start
-    pair_link = on_face[np.repeat(np.arange(len(on_face)), count)]
-    offset = np.arange(len(pair_link)) - np.repeat(np.cumsum(count) - count, count)
-    pair_patch = below.indices[np.repeat(start, count) + offset]
-    # pairs under a link whose own rays all agreed trace one ray per point, the others
-    # GATHER_RAYS (shadow edges are where the gather's noise is)
+    centroid = state.surface.verts.mean(axis=1)
+    # every node's irradiance from its own links and its ancestors' (brightest channel)
+    b_src = solved.b_node.max(axis=1)
+    h_node = ancestor_matrix(nodes, np.arange(len(nodes))) @ (links.matrix(len(nodes)) @ b_src)
+    on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
+    # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
+    # gather's noise is), the others one
     link_partial = (links.ff < links.ff_unocc) & (links.ff > 0)
-    pair_src = links.src[pair_link]
-    pair_rays = np.where(link_partial[pair_link], GATHER_RAYS, 1)
-    g_ff, g_var, inner = _evaluate_pairs(state, solved, pair_patch, pair_src, pair_rays)
+    recv, src = links.recv[on_face].astype(np.int64), links.src[on_face].astype(np.int64)
+    rays = np.where(link_partial[on_face], GATHER_RAYS, 1)
+    smooth_parts = []          # (patch, source, transfer) from linear fits
+    pairs = [(np.zeros(0, np.int64),) * 3]   # (patch, source, rays) to gather at the patch's points
+    inner = 0.0
+    evaluated = 0
+    while len(recv):
+        is_face = nodes.kind[recv] == FACE
+        pairs.append((recv[~is_face], src[~is_face], rays[~is_face]))
+        recv, src, rays = recv[is_face], src[is_face], rays[is_face]
+        if not len(recv):
+            break
+        g, _, gv, seconds = _point_values(state, recv, src, rays)
+        inner += seconds
+        evaluated += len(recv)
+        smooth, x0, a, grad, rms = smooth_links(nodes, recv, src, g, gv, b_src[src], h_node[recv],
+                                           state.settings.tolerance)
+        ok = np.flatnonzero(smooth)
+        start = below.indptr[recv[ok]]
+        count = below.indptr[recv[ok] + 1] - start
+        owner = np.repeat(np.arange(len(ok)), count)
+        offset = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+        patch = below.indices[np.repeat(start, count) + offset]
+        k = ok[owner]
+        value = a[k] + np.einsum("mc,mc->m", grad[k], centroid[patch] - x0[k])
+        # the fit's residual is the interpolation's error, counted like visibility noise
+        smooth_parts.append((patch, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
+        # the others go one level down the receiver's tree
+        rest = np.flatnonzero(~smooth)
+        kids = nodes.children[recv[rest]]
+        own, slot = np.nonzero(kids >= 0)
+        recv, src, rays = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own]
+    pair_patch, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
+    g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_patch, pair_src, pair_rays)
+    inner += seconds
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
@@ -428,6 +520,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         g_ff = np.concatenate([g_ff[~split], k_ff])
         g_var = np.concatenate([g_var[~split], k_var])
     var = np.bincount(pair_patch, weights=g_var, minlength=n_patch)
+    for part in smooth_parts:
+        var += np.bincount(part[0], weights=part[3], minlength=n_patch)
+    gathered_pairs = len(pair_patch)
+    pair_patch = np.concatenate([pair_patch] + [p[0] for p in smooth_parts])
+    pair_src = np.concatenate([pair_src] + [p[1] for p in smooth_parts])
+    g_ff = np.concatenate([g_ff] + [p[2] for p in smooth_parts])
     # the system again, with every face-cluster link replaced by its patches' own transfers
     # (P, N): each patch then gathers from the sources' means what reaches its own points,
     # and a cluster's mean, pulled from its patches, is theirs
@@ -442,8 +540,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                        system.rho, system.emission)
     t1 = time.perf_counter()
     b, iterations, _ = solve_system(final, solved.b_leaf, method=state.settings.solver,
-                                           tol=state.settings.solver_tolerance,
-                                           max_iterations=state.settings.max_iterations)
+                                    tol=state.settings.solver_tolerance,
+                                    max_iterations=state.settings.max_iterations)
     solve_time = time.perf_counter() - t1
     state.timing["solve"] += solve_time
     h_leaf = final.gather(np.maximum(b, 0.0))
@@ -452,7 +550,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     noise = EXPECTED_ABS * rho * nodes.area[leaves] * np.sqrt(var[patch_of])
     state.timing["transfer"] += inner
     state.timing["gather"] += time.perf_counter() - t - inner - solve_time
-    return Gathered(h_leaf, noise, int(iterations), len(pair_patch))
+    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated)
 
 
 def source_state(state: State, solved: Solved) -> SourceState:

@@ -101,3 +101,25 @@ def test_tessellated_furnace_every_triangle_within_tolerance(tmp_path):
     rel = np.abs(b - 2.0) / 2.0
     assert rel.max() <= tol
     assert abs(b.mean() / 2.0 - 1.0) <= 0.01
+
+
+def test_linear_fit_reproduces_a_linear_field_and_measures_curvature():
+    """The final gather's fit over a face cluster's points: a linear field comes back exactly
+    (no residual), a curved one leaves a residual of the curvature's size."""
+    from mirad.nodes import RECEIVER_POINTS
+
+    scene = mirad.load_scene(SCENES / "cornell-box-fine" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, quiet=True, core="hierarchical"))
+    nodes = state.nodes
+    faces = np.flatnonzero(nodes.kind == core.FACE)[:50]
+    pts = nodes.recv_pts[faces].astype(np.float64)
+    rng = np.random.default_rng(1)
+    grad = rng.normal(size=(len(faces), 3))
+    grad -= np.einsum("mc,mc->m", grad, nodes.normal[faces])[:, None] * nodes.normal[faces]
+    linear = 2.0 + np.einsum("mkc,mc->mk", pts, grad)
+    x0, a, g, rms = core.linear_fit(nodes, faces, linear)
+    assert pts.shape[1] == RECEIVER_POINTS
+    assert np.allclose(a + np.einsum("mc,mc->m", g, pts[:, 0] - x0), linear[:, 0], atol=1e-9)
+    assert rms.max() < 1e-9
+    curved = linear + np.linalg.norm(pts - pts.mean(axis=1, keepdims=True), axis=2) ** 2
+    assert (core.linear_fit(nodes, faces, curved)[3] > 1e-4).all()
