@@ -37,10 +37,13 @@ _default_variant()
 
 
 def _register_plugin() -> None:
-    """Make ``<integrator type="radiosity">`` available in every variant (mirad/integrator.py)."""
+    """Make ``<integrator type="radiosity">`` (mirad/integrator.py) and ``<bsdf type="leaf">``
+    (mirad/leaf.py) available in every variant."""
     from .integrator import install
+    from .leaf import install as install_leaf
 
     install()
+    install_leaf()
 
 
 _register_plugin()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from ._runtime import choose_variant
 from .arrays import scene_diagonal
 from .errors import SceneError
+from .leaf import LeafError, is_leaf
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -65,6 +67,9 @@ class Scene:
         ``shape`` id, ``bsdf`` class, ``what`` ("transmission", "opacity", "non-diffuse reflection"),
         ``area`` m^2, and area means (C,) of ``albedo`` (used), ``transmitted`` (lost), ``non_diffuse``
         (redirected); ``model_error()`` turns them into a relative error
+    tri_leaf : (T,) bool           triangles whose BSDF is a leaf (``mirad/leaf.py``; or a ``twosided``
+        or blend of leaves: every lobe diffuse, one of them transmitting): their transmittance is
+        diffuse, the same both ways, and is what ``patch_transmittance`` hands to the other side
     origin : (3,) float            m; the scene as loaded was moved by -origin so that its bounding box
         is centred at 0 (float32 precision far from the origin; zero for scenes near it): every
         position above, ``mi_scene`` and its sensors are in this internal frame; ``to_user`` /
@@ -101,12 +106,15 @@ class Scene:
     tri_specular: np.ndarray | None = None
     approximations: list = field(default_factory=list)
     origin: np.ndarray | None = None
+    tri_leaf: np.ndarray | None = None
 
     def __post_init__(self):
         T = len(self.faces)
         self.origin = np.zeros(3) if self.origin is None else np.asarray(self.origin, dtype=np.float64)
         if self.tri_face is None:
             self.tri_face = np.arange(T)
+        if self.tri_leaf is None:
+            self.tri_leaf = np.zeros(T, bool)
         for name in ("tri_transmittance", "back_transmittance", "tri_specular"):
             if getattr(self, name) is None:
                 setattr(self, name, np.zeros((T, self.tri_rho.shape[1])))
@@ -137,8 +145,11 @@ class Scene:
 
     @property
     def back_triangles(self) -> np.ndarray:
-        """(B,) int: triangles with a back-side patch (two-sided BSDF)."""
-        return np.flatnonzero(self.back_rho.max(axis=1) > 0)
+        """(B,) int: triangles with a back-side patch: a two-sided BSDF (back reflectance > 0), or a
+        leaf that transmits (light passes to its back side even where that side reflects nothing)."""
+        back = self.back_rho.max(axis=1) > 0
+        back |= self.tri_leaf & ((self.tri_transmittance.max(axis=1) > 0) | (self.back_transmittance.max(axis=1) > 0))
+        return np.flatnonzero(back)
 
     @property
     def patch_tri(self) -> np.ndarray:
@@ -158,6 +169,32 @@ class Scene:
     def patch_emission(self) -> np.ndarray:
         back = np.zeros((len(self.back_triangles), self.channels))
         return np.concatenate([self.tri_emission, back])
+
+    @property
+    def patch_opposite(self) -> np.ndarray:
+        """(P,) int: the patch on the other side of each patch's triangle, -1 where it has none."""
+        T, back = self.triangle_count, self.back_triangles
+        opposite = np.full(T + len(back), -1, np.int64)
+        opposite[back] = T + np.arange(len(back))
+        opposite[T:] = back
+        return opposite
+
+    @property
+    def patch_transmittance(self) -> np.ndarray:
+        """(P, C) float: the fraction of the irradiance arriving on each patch's side that leaves,
+        diffusely, from the other side (``patch_opposite``): ``tri_transmittance`` for a front patch,
+        ``back_transmittance`` for a back patch, on leaf triangles (``tri_leaf``); zero elsewhere,
+        where transmission (glass, masks) is light the diffuse, opaque model loses (``model_error``).
+        Dimensionless, in [0, 1 - patch_rho]."""
+        leaf = self.tri_leaf[:, None]
+        front = np.where(leaf, self.tri_transmittance, 0.0)
+        back = np.where(leaf, self.back_transmittance, 0.0)[self.back_triangles]
+        return np.concatenate([front, back])
+
+    @property
+    def diffuse_transmission(self) -> bool:
+        """True when some shape has a leaf BSDF (``tri_leaf``) that transmits light (tau > 0)."""
+        return bool(np.any(self.patch_transmittance > 0))
 
     @property
     def grey(self) -> bool:
@@ -186,6 +223,8 @@ class Scene:
             "dropped_zero_area_triangles": int(self.dropped_triangles),
             "duplicate_triangles": int(self.duplicate_triangles),
             "non_manifold_edges": int(self.non_manifold_edges),
+            "translucent_leaf_triangles": int(np.count_nonzero(
+                self.tri_leaf & (np.maximum(self.tri_transmittance, self.back_transmittance).max(axis=1) > 0))),
         }
 
     @property
@@ -195,6 +234,8 @@ class Scene:
         for arr in (self.vertices.astype(np.float32), self.faces.astype(np.int64),
                     np.round(self.tri_rho, 6), np.round(self.tri_emission, 6), np.round(self.back_rho, 6)):
             h.update(np.ascontiguousarray(arr).tobytes())
+        if self.diffuse_transmission:  # only then: every other scene keeps the fingerprint it had
+            h.update(np.ascontiguousarray(np.round(self.patch_transmittance, 6)).tobytes())
         h.update("\0".join(self.shape_ids).encode())
         h.update("\0".join(self.light_kinds).encode())
         return h.hexdigest()[:16]
@@ -278,14 +319,14 @@ def load_scene(source, *, variant: str | None = None) -> Scene:
         try:
             mi_scene = mi.load_file(path, optimize=False)
         except Exception as exc:  # Mitsuba raises RuntimeError with its own text
-            raise SceneError(_explain_load_error(path, exc, meshes)) from None
+            raise SceneError(_explain_load_error(path, exc, meshes, source=path)) from None
     elif isinstance(source, dict):
         meshes = _mesh_files(source)
         _check_ply_indices("<dict>", meshes)
         try:
             mi_scene = mi.load_dict(source, optimize=False)
         except Exception as exc:
-            raise SceneError(_explain_load_error("<dict>", exc, meshes)) from None
+            raise SceneError(_explain_load_error("<dict>", exc, meshes, source=source)) from None
     elif isinstance(source, mi.Scene):
         mi_scene, meshes = source, []
     else:
@@ -477,6 +518,9 @@ def _culprit(meshes: list, text: str):
 
 
 _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user should do)
+    ("without a transmission component", "a twosided BSDF that holds a transmitting BSDF (a leaf: "
+                                         "docs/leaves.md) needs <boolean name=\"allow_transmission\" "
+                                         "value=\"true\"/> inside it"),
     ("incompatible sizes", "the mesh has no faces (a point cloud?) or no vertices; mirad needs triangles: "
                            "re-export it with its faces"),
     ("codec can't decode", "the file is corrupt or not a mesh of that format (unreadable bytes in its header); "
@@ -493,8 +537,11 @@ _LOAD_FIXES = (  # (substring of Mitsuba's message, lower case; what the user sh
 )
 
 
-def _explain_load_error(where: str, exc: Exception, meshes: list = ()) -> str:
+def _explain_load_error(where: str, exc: Exception, meshes: list = (), *, source=None) -> str:
     text = str(exc).strip()
+    refusal = _leaf_refusal(where, text, source)
+    if refusal is not None:
+        return refusal
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     detail = lines[-1] if lines else type(exc).__name__
     low = text.lower()
@@ -505,6 +552,84 @@ def _explain_load_error(where: str, exc: Exception, meshes: list = ()) -> str:
             return (f"{where}: mesh file '{mesh[2]}'{_shape_note(mesh[0])} cannot be loaded ({detail}); "
                     f"{fix or 'the file is corrupt or not a ' + mesh[1].upper() + ' mesh; re-export it'}")
     return f"{where}: Mitsuba could not load the scene ({detail}); {fix or 'fix the scene so that Mitsuba itself can load it'}"
+
+
+def _leaf_refusal(where: str, text: str, source) -> str | None:
+    """A leaf BSDF's refusal of its values (``mirad.leaf.LeafError``) inside Mitsuba's load error,
+    as one line naming the file (and line), the shapes that use the BSDF, and the fix; None for any
+    other error. ``source`` is the scene's XML path or dict (to find the shapes), or None."""
+    marker = f"{LeafError.__name__}: "
+    message = next((ln.strip()[len(marker):] for ln in text.splitlines() if ln.strip().startswith(marker)), None)
+    if message is None:
+        return None
+    at_line = re.search(r"\(line (\d+), col \d+\)", text)
+    node = re.search(r'At dictionary node "([^"]+)"', text)
+    owners: list = []
+    try:
+        if isinstance(source, dict) and node:
+            owners = _dict_owners(source, node.group(1))
+        elif isinstance(source, (str, os.PathLike)) and at_line:
+            owners = _xml_owners(str(source), int(at_line.group(1)))
+    except Exception:  # locating the shape is a courtesy: the message stands without it
+        owners = []
+    place = f"{where} (line {at_line.group(1)})" if at_line and isinstance(source, (str, os.PathLike)) else where
+    shapes = ""
+    if owners:
+        shapes = ("shape " if len(owners) == 1 else "shapes ") + ", ".join(f"'{o}'" for o in owners[:5]) + \
+            (f" and {len(owners) - 5} more" if len(owners) > 5 else "") + ": "
+    return f"{place}: {shapes}{message}"
+
+
+def _dict_owners(source: dict, node: str) -> list:
+    """Ids of the shapes of a scene dict that own (or refer to) the object at ``node`` ("blade.bsdf")."""
+    top = node.split(".")[0]
+    users = []
+
+    def refers(d) -> bool:
+        if isinstance(d, dict):
+            if d.get("type") == "ref" and d.get("id") == top:
+                return True
+            return any(refers(v) for v in d.values())
+        return False
+
+    for key, value in source.items():
+        if key != top and isinstance(value, dict) and refers(value):
+            users.append(str(value.get("id", key)))
+    if users:
+        return users
+    entry = source.get(top)
+    return [str(entry.get("id", top))] if isinstance(entry, dict) and "." in node else []
+
+
+def _xml_owners(path: str, line: int) -> list:
+    """Ids of the shapes of a scene XML that hold the element starting at ``line`` or refer to the
+    top-level object holding it (unnamed shapes as "line N")."""
+    import xml.parsers.expat
+
+    parents: list = []      # stack of (tag, attributes, line)
+    found: list = []        # the element's ancestors, outermost first, itself last
+    shapes_by_ref: dict = {}
+
+    def start(tag, attrs):
+        here = parser.CurrentLineNumber
+        parents.append((tag, attrs, here))
+        if not found and here == line:
+            found.extend(parents)
+        if tag == "ref":
+            shape = next((p for p in reversed(parents[:-1]) if p[0] == "shape"), None)
+            if shape is not None:
+                shapes_by_ref.setdefault(attrs.get("id"), []).append(shape[1].get("id") or f"line {shape[2]}")
+
+    parser = xml.parsers.expat.ParserCreate()
+    parser.StartElementHandler = start
+    parser.EndElementHandler = lambda tag: parents.pop()
+    with open(path, "rb") as f:
+        parser.ParseFile(f)
+    shape = next((p for p in reversed(found) if p[0] == "shape"), None)
+    if shape is not None:
+        return [shape[1].get("id") or f"line {shape[2]}"]
+    top = found[1] if len(found) > 1 else None          # found[0] is <scene>
+    return shapes_by_ref.get(top[1].get("id"), []) if top is not None else []
 
 
 def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | None = None,
@@ -876,16 +1001,21 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
         sid = scene.shape_ids[index]
         bsdf, emitter = shape.bsdf(), shape.emitter()
         non_diffuse = bsdf is not None and bool(int(bsdf.flags()) & int(_non_diffuse_flags()))
-        # several lobes (a blend of diffuse ones too): the lobe choice is sampled, so it needs samples
-        mixed = non_diffuse or (bsdf is not None and bsdf.component_count() > 1)
+        leaf = is_leaf(bsdf)
+        # several lobes (a blend of diffuse ones too): the lobe choice is sampled, so it needs samples;
+        # a leaf's lobes are evaluated, not sampled (``_leaf_optics``), and exact at every point
+        mixed = not leaf and (non_diffuse or (bsdf is not None and bsdf.component_count() > 1))
         counts = _sample_counts(scene, tris, (bsdf, emitter), minimum=_DIRECTIONS if mixed else _POINTS)
+        scene.tri_leaf[tris] = leaf
         for lo, hi in _batches(counts):
             part = tris[lo:hi]
             owner = np.repeat(np.arange(len(part)), counts[lo:hi])
             index_in_tri = np.arange(len(owner)) - np.repeat(np.cumsum(counts[lo:hi]) - counts[lo:hi], counts[lo:hi])
             si, qmc = _material_interactions(scene, shape, part, owner, index_in_tri,
                                              grid=np.repeat(np.sqrt(counts[lo:hi]).astype(np.int64), counts[lo:hi]))
-            if bsdf is not None:
+            if leaf:
+                _leaf_optics(scene, bsdf, si, owner, part, qmc, f"{where}: shape '{sid}'")
+            elif bsdf is not None:
                 for side, rho, tau in ((+1.0, scene.tri_rho, scene.tri_transmittance),
                                        (-1.0, scene.back_rho, scene.back_transmittance)):
                     refl, trans, spec, vmin, vmax = _hemispherical(bsdf, si, owner, len(part), qmc, side)
@@ -913,7 +1043,7 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
                     scene.tri_specular):
             arr[tris] = np.clip(arr[tris], 0.0, 1.0)
         if bsdf is not None:
-            _record_approximation(scene, sid, bsdf, tris, non_diffuse)
+            _record_approximation(scene, sid, bsdf, tris, non_diffuse and not leaf)
 
 
 #: Sample points per triangle: least for a diffuse BSDF (one direction each is exact), least for a
@@ -1080,6 +1210,79 @@ def _hemispherical(bsdf, si, owner: np.ndarray, n: int, qmc: np.ndarray, side: f
             float(refl.min()), float(refl.max()))
 
 
+#: Slack of the loader's leaf checks: float32 textures and evaluation.
+_LEAF_SLACK = 1e-4
+
+
+def _leaf_optics(scene: Scene, bsdf, si, owner: np.ndarray, part: np.ndarray, qmc: np.ndarray,
+                 label: str) -> None:
+    """Reflectance and transmittance of both sides of leaf triangles (``leaf.is_leaf``), exact.
+
+    A leaf's lobes are Lambertian: ``eval`` returns albedo / pi * |cos theta_o| for any pair of
+    directions, so pi * eval / |cos theta_o| is the albedo of the lobe ``wo`` falls in, at that very
+    point. Each lane takes its incident direction (cosine-weighted over the side, as in
+    ``_hemispherical``) and one outgoing direction on each side, in importance mode (``wi`` is where
+    the light arrives, so a ``twosided`` pair's front leaf gives the front side). Fills ``tri_rho``,
+    ``back_rho``, ``tri_transmittance``, ``back_transmittance`` (per-triangle means of the (N, 3)
+    lane values) and a zero ``tri_specular`` for the triangles ``part`` (n,) int, lane k on
+    ``part[owner[k]]``. Every lane is checked, so a texture is checked at every sample point
+    (``_PER_TEXEL`` per texel): SceneError, named by ``label``, for a value below 0, reflectance +
+    transmittance above 1 on either side, or front and back transmittances that differ (Mitsuba's
+    ``twosided`` picks the nested BSDF by the side facing the camera in its path tracer and by the
+    side the light arrives on in light tracing, which agree only when both transmit alike).
+    """
+    lanes, n = len(owner), len(part)
+    r, phi = np.sqrt(qmc[:, 0]), 2 * np.pi * qmc[:, 1]
+    z = np.sqrt(np.maximum(0.0, 1 - qmc[:, 0]))
+    # outgoing directions away from grazing (cos >= 0.1), where float32 would blur the ratio
+    z_out = np.sqrt(1 - 0.99 * qmc[:, 3])
+    r_out, phi_out = np.sqrt(np.maximum(0.0, 1 - z_out * z_out)), 2 * np.pi * qmc[:, 4]
+    f32 = lambda a: mi.Float(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    lane_values = {}
+    for side in (+1.0, -1.0):
+        si.wi = mi.Vector3f(f32(r * np.cos(phi)), f32(r * np.sin(phi)), f32(z * side))
+        for out in (+1.0, -1.0):        # +1: back to the incident side (reflection), -1: through
+            wo = mi.Vector3f(f32(r_out * np.cos(phi_out)), f32(r_out * np.sin(phi_out)), f32(z_out * side * out))
+            value = _rows(bsdf.eval(ctx, si, wo), lanes) * (np.pi / z_out)[:, None]
+            lane_values[side, out] = np.nan_to_num(value, nan=-1.0, posinf=2.0, neginf=-1.0)
+    varying = any(np.ptp(v, axis=0).max() > _LEAF_SLACK for v in lane_values.values())
+    uv = np.array(si.uv.numpy(), dtype=np.float64).reshape(2, -1).T if varying and scene.vertex_uv is not None else None
+
+    def at(lane: int) -> str:
+        return f" (at uv {uv[lane, 0]:.3g}, {uv[lane, 1]:.3g})" if uv is not None else ""
+
+    for side, name in ((+1.0, "front"), (-1.0, "back")):
+        refl, trans = lane_values[side, +1.0], lane_values[side, -1.0]
+        for what, values in (("reflectance", refl), ("transmittance", trans)):
+            lane, channel = np.unravel_index(np.argmin(values), values.shape)
+            if values[lane, channel] < -_LEAF_SLACK:
+                raise SceneError(f"{label}: {name} {what} {values[lane, channel]:.3g} < 0{at(lane)}; give the "
+                                 f"leaf a {what} between 0 and 1 everywhere")
+        total = refl + trans
+        lane, channel = np.unravel_index(np.argmax(total), total.shape)
+        if total[lane, channel] > 1 + _LEAF_SLACK:
+            raise SceneError(f"{label}: {name} reflectance {refl[lane, channel]:.3g} + transmittance "
+                             f"{trans[lane, channel]:.3g} = {total[lane, channel]:.3g} > 1{at(lane)} breaks energy "
+                             "conservation; lower the leaf's textures so that reflectance + transmittance <= 1 "
+                             "everywhere (the rest is absorbed)")
+    front, back = lane_values[+1.0, -1.0], lane_values[-1.0, -1.0]
+    gap = np.abs(front - back)
+    lane, channel = np.unravel_index(np.argmax(gap), gap.shape)
+    if gap[lane, channel] > _LEAF_SLACK + 1e-3 * max(front[lane, channel], back[lane, channel]):
+        raise SceneError(
+            f"{label}: its front side transmits {front[lane, channel]:.3g} and its back side "
+            f"{back[lane, channel]:.3g}{at(lane)}; light must pass through a leaf alike both ways (Mitsuba's "
+            "twosided picks the nested BSDF by the side facing the camera, so the path tracer would apply the "
+            "front leaf's transmittance to light arriving on the back): give both leaves of the twosided BSDF "
+            "the same transmittance (only the reflectance may differ per side)")
+    scene.tri_rho[part] = _triangle_means(lane_values[+1.0, +1.0], owner, n)
+    scene.back_rho[part] = _triangle_means(lane_values[-1.0, +1.0], owner, n)
+    scene.tri_transmittance[part] = _triangle_means(front, owner, n)
+    scene.back_transmittance[part] = _triangle_means(back, owner, n)
+    scene.tri_specular[part] = 0.0
+
+
 def _match_shape_estimate(scene: Scene, shape, bsdf, tris: np.ndarray) -> None:
     """Scale a non-diffuse shape's per-triangle values to a shape-wide estimate of many samples.
 
@@ -1118,7 +1321,7 @@ def _record_approximation(scene: Scene, sid: str, bsdf, tris: np.ndarray, non_di
     lost = np.maximum(mean(scene.tri_transmittance), mean(scene.back_transmittance))
     if not non_diffuse and lost.max() < _APPROX_MIN:
         return
-    name = bsdf.class_name()
+    name = "leaf" if is_leaf(bsdf) else bsdf.class_name()
     cutout = name in ("MaskBSDF", "NullBSDF", "Null")
     parts = []
     if lost.max() >= _APPROX_MIN:
