@@ -103,6 +103,9 @@ def _info(args) -> int:
           f"{'on' if patches > threshold else 'off'} ({patches} patches, threshold {threshold})")
     if features["non_diffuse_approximated"]:
         print(f"  non-diffuse BSDFs approximated by their albedo: {features['non_diffuse_approximated']}")
+    if features["translucent_leaf_triangles"]:
+        print(f"  translucent leaves (transmittance read per side, docs/leaves.md): "
+              f"{features['translucent_leaf_triangles']} triangles")
     if features["dropped_zero_area_triangles"]:
         print(f"  zero-area triangles dropped: {features['dropped_zero_area_triangles']}")
     return 0
