@@ -13,7 +13,8 @@ Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
                 until the light it brings is linear and unshadowed over a node (then the
                 patches below take the fit) or reaches the input patches (which evaluate
                 it at their own points and rays) (``final_gather``); the fits' residuals
-                and the visibility noise are added to the estimate
+                and the visibility noise replace the face clusters' mean errors in the
+                estimate (``output_estimate``)
 
 Multigridding: after each solve the link errors are recomputed from the new radiosity;
 eps is set so that the links under it hold at most half the error budget
@@ -633,6 +634,20 @@ def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
     return Estimate(receiver, src, d, total / max(state.total_area * mean, 1e-300), mean)
 
 
+def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate:
+    """The estimate of the output, after the final gather.
+
+    The gather evaluates every face-cluster link again on the patches below its receiver
+    and the system is solved again with those transfers: the errors of the clusters' means
+    (those links' receiver terms) are gone from the output, and the gather's own visibility
+    noise and fit residuals take their place. Source terms, links on triangles and the
+    direct light keep theirs."""
+    face = state.nodes.kind[state.links.recv] == FACE
+    receiver = np.where(face, 0.0, est.receiver)
+    total = float(receiver.sum() + est.source.sum() + est.direct.sum() + gathered.noise_power.sum())
+    return replace(est, receiver=receiver, relative=total / max(state.total_area * est.reflected_mean, 1e-300))
+
+
 # ------------------------------------------------------------------------------------------
 # The driver
 # ------------------------------------------------------------------------------------------
@@ -700,8 +715,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
         bar.refresh()
         bar.close()
     gathered = final_gather(state, solved)
-    # the final gather's own visibility noise adds to the estimate of the output
-    est.relative += float(gathered.noise_power.sum()) / max(state.total_area * est.reflected_mean, 1e-300)
+    est = output_estimate(state, est, gathered)
     if capped:
         warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
                       f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
