@@ -1002,9 +1002,10 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
         bsdf, emitter = shape.bsdf(), shape.emitter()
         non_diffuse = bsdf is not None and bool(int(bsdf.flags()) & int(_non_diffuse_flags()))
         leaf = is_leaf(bsdf)
-        # several lobes (a blend of diffuse ones too): the lobe choice is sampled, so it needs samples;
         # a leaf's lobes are evaluated, not sampled (``_leaf_optics``), and exact at every point
-        mixed = not leaf and (non_diffuse or (bsdf is not None and bsdf.component_count() > 1))
+        exact = leaf and _lambertian(scene, shape, bsdf, tris)
+        # several lobes (a blend of diffuse ones too): the lobe choice is sampled, so it needs samples
+        mixed = not exact and (non_diffuse or (bsdf is not None and bsdf.component_count() > 1))
         counts = _sample_counts(scene, tris, (bsdf, emitter), minimum=_DIRECTIONS if mixed else _POINTS)
         scene.tri_leaf[tris] = leaf
         for lo, hi in _batches(counts):
@@ -1013,7 +1014,7 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
             index_in_tri = np.arange(len(owner)) - np.repeat(np.cumsum(counts[lo:hi]) - counts[lo:hi], counts[lo:hi])
             si, qmc = _material_interactions(scene, shape, part, owner, index_in_tri,
                                              grid=np.repeat(np.sqrt(counts[lo:hi]).astype(np.int64), counts[lo:hi]))
-            if leaf:
+            if exact:
                 _leaf_optics(scene, bsdf, si, owner, part, qmc, f"{where}: shape '{sid}'")
             elif bsdf is not None:
                 for side, rho, tau in ((+1.0, scene.tri_rho, scene.tri_transmittance),
@@ -1214,38 +1215,70 @@ def _hemispherical(bsdf, si, owner: np.ndarray, n: int, qmc: np.ndarray, side: f
 _LEAF_SLACK = 1e-4
 
 
+def _lobe_albedos(bsdf, si, qmc: np.ndarray, *, swap: bool = False) -> dict:
+    """pi * eval / |cos theta_o| per lane for incidence on each side and ``wo`` on each side.
+
+    Returns {(side, out): (N, 3) float}, side +1 front / -1 back incidence, out +1 the incident side
+    (reflection) / -1 the other (transmission): the lobes' albedos at each point where they are
+    Lambertian in the triangle's frame. The incident direction comes from ``qmc[:, 0:2]``
+    (cosine-weighted), the outgoing one from ``qmc[:, 3:5]`` kept away from grazing (cos >= 0.1, where
+    float32 would blur the ratio); ``swap`` exchanges the two, for a second, independent pair.
+    Importance mode: ``si.wi`` is where the light arrives (a ``twosided`` pair's front BSDF answers
+    for light arriving on the front). NaN or Inf values come out as -1 or 2, which the checks refuse.
+    """
+    a, b = (qmc[:, 3:5], qmc[:, 0:2]) if swap else (qmc[:, 0:2], qmc[:, 3:5])
+    lanes = len(qmc)
+    r, phi, z = np.sqrt(a[:, 0]), 2 * np.pi * a[:, 1], np.sqrt(np.maximum(0.0, 1 - a[:, 0]))
+    z_out = np.sqrt(1 - 0.99 * b[:, 0])
+    r_out, phi_out = np.sqrt(np.maximum(0.0, 1 - z_out * z_out)), 2 * np.pi * b[:, 1]
+    f32 = lambda v: mi.Float(np.ascontiguousarray(v, dtype=np.float32))  # noqa: E731
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    values = {}
+    for side in (+1.0, -1.0):
+        si.wi = mi.Vector3f(f32(r * np.cos(phi)), f32(r * np.sin(phi)), f32(z * side))
+        for out in (+1.0, -1.0):
+            wo = mi.Vector3f(f32(r_out * np.cos(phi_out)), f32(r_out * np.sin(phi_out)), f32(z_out * side * out))
+            value = _rows(bsdf.eval(ctx, si, wo), lanes) * (np.pi / z_out)[:, None]
+            values[side, out] = np.nan_to_num(value, nan=-1.0, posinf=2.0, neginf=-1.0)
+    return values
+
+
+#: Points over a shape at which ``_lambertian`` compares two direction pairs.
+_PROBE = 4096
+
+
+def _lambertian(scene: Scene, shape, bsdf, tris: np.ndarray) -> bool:
+    """True when a leaf-like BSDF's lobes are Lambertian in the triangles' own frame, so that
+    ``_leaf_optics`` reads them exactly: at ``_PROBE`` points spread over the shape by area, two
+    independent pairs of directions give the same albedos (``_lobe_albedos``). False for a leaf
+    under a normal or bump map, whose lobes follow a tilted normal: the loader then measures it by
+    sampling, like any other BSDF."""
+    area = scene.tri_area[tris]
+    index = np.arange(_PROBE)
+    owner = np.minimum(np.searchsorted(np.cumsum(area) / area.sum(), np.mod(0.5 + index * _ALPHA[7], 1.0)),
+                       len(tris) - 1)
+    si, qmc = _material_interactions(scene, shape, tris, owner, index)
+    one, two = _lobe_albedos(bsdf, si, qmc), _lobe_albedos(bsdf, si, qmc, swap=True)
+    return all(np.allclose(one[k], two[k], rtol=1e-3, atol=_LEAF_SLACK) for k in one)
+
+
 def _leaf_optics(scene: Scene, bsdf, si, owner: np.ndarray, part: np.ndarray, qmc: np.ndarray,
                  label: str) -> None:
     """Reflectance and transmittance of both sides of leaf triangles (``leaf.is_leaf``), exact.
 
-    A leaf's lobes are Lambertian: ``eval`` returns albedo / pi * |cos theta_o| for any pair of
-    directions, so pi * eval / |cos theta_o| is the albedo of the lobe ``wo`` falls in, at that very
-    point. Each lane takes its incident direction (cosine-weighted over the side, as in
-    ``_hemispherical``) and one outgoing direction on each side, in importance mode (``wi`` is where
-    the light arrives, so a ``twosided`` pair's front leaf gives the front side). Fills ``tri_rho``,
-    ``back_rho``, ``tri_transmittance``, ``back_transmittance`` (per-triangle means of the (N, 3)
-    lane values) and a zero ``tri_specular`` for the triangles ``part`` (n,) int, lane k on
-    ``part[owner[k]]``. Every lane is checked, so a texture is checked at every sample point
+    A leaf's lobes are Lambertian (``_lambertian`` checked it): ``eval`` returns albedo / pi *
+    |cos theta_o| for any pair of directions, so pi * eval / |cos theta_o| is the albedo of the lobe
+    ``wo`` falls in, at that very point (``_lobe_albedos``: one incident direction per lane and one
+    outgoing direction on each side). Fills ``tri_rho``, ``back_rho``, ``tri_transmittance``,
+    ``back_transmittance`` (per-triangle means of the (N, 3) lane values) and a zero ``tri_specular``
+    for the triangles ``part`` (n,) int, lane k on ``part[owner[k]]``. Every lane is checked, so a texture is checked at every sample point
     (``_PER_TEXEL`` per texel): SceneError, named by ``label``, for a value below 0, reflectance +
     transmittance above 1 on either side, or front and back transmittances that differ (Mitsuba's
     ``twosided`` picks the nested BSDF by the side facing the camera in its path tracer and by the
     side the light arrives on in light tracing, which agree only when both transmit alike).
     """
-    lanes, n = len(owner), len(part)
-    r, phi = np.sqrt(qmc[:, 0]), 2 * np.pi * qmc[:, 1]
-    z = np.sqrt(np.maximum(0.0, 1 - qmc[:, 0]))
-    # outgoing directions away from grazing (cos >= 0.1), where float32 would blur the ratio
-    z_out = np.sqrt(1 - 0.99 * qmc[:, 3])
-    r_out, phi_out = np.sqrt(np.maximum(0.0, 1 - z_out * z_out)), 2 * np.pi * qmc[:, 4]
-    f32 = lambda a: mi.Float(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    lane_values = {}
-    for side in (+1.0, -1.0):
-        si.wi = mi.Vector3f(f32(r * np.cos(phi)), f32(r * np.sin(phi)), f32(z * side))
-        for out in (+1.0, -1.0):        # +1: back to the incident side (reflection), -1: through
-            wo = mi.Vector3f(f32(r_out * np.cos(phi_out)), f32(r_out * np.sin(phi_out)), f32(z_out * side * out))
-            value = _rows(bsdf.eval(ctx, si, wo), lanes) * (np.pi / z_out)[:, None]
-            lane_values[side, out] = np.nan_to_num(value, nan=-1.0, posinf=2.0, neginf=-1.0)
+    n = len(part)
+    lane_values = _lobe_albedos(bsdf, si, qmc)
     varying = any(np.ptp(v, axis=0).max() > _LEAF_SLACK for v in lane_values.values())
     uv = np.array(si.uv.numpy(), dtype=np.float64).reshape(2, -1).T if varying and scene.vertex_uv is not None else None
 

@@ -312,6 +312,19 @@ def test_other_bsdfs_keep_their_patches_and_transmit_nothing_to_the_other_side()
     assert list(cornell_like.patch_opposite) == [2, 3, 0, 1]
 
 
+def test_a_normal_mapped_leaf_is_measured_by_sampling_not_refused():
+    """Under a normal map a leaf's lobes follow the tilted normal, so pi f / cos is no albedo: the
+    loader measures it by sampling like any other BSDF (no point-by-point refusal), still as a leaf
+    (lobes diffuse, transmittance handed over); a tilted normal only loses light, never adds it."""
+    tilted = mi.TensorXf(np.array([[[0.8, 0.5, 0.9]]], np.float32))
+    scene = load(sun_scene({"type": "normalmap", "normalmap": {"type": "bitmap", "raw": True, "data": tilted},
+                            "bsdf": leaf([0.45] * 3, [0.45] * 3)}))
+    assert scene.tri_leaf.all() and scene.diffuse_transmission
+    for rho, tau in ((scene.tri_rho, scene.tri_transmittance), (scene.back_rho, scene.back_transmittance)):
+        assert np.all((rho > 0.2) & (rho <= 0.45 + 0.01) & (tau > 0.2) & (tau <= 0.45 + 0.01))
+    check_patches(scene)
+
+
 def test_fingerprint_sees_the_transmittance_of_leaves():
     a, b = load(sun_scene(leaf())), load(sun_scene(leaf(tau=[0.3, 0.2, 0.5])))
     assert a.fingerprint != b.fingerprint
