@@ -53,6 +53,9 @@ class Scene:
     patch_tri : (P,) int           triangle of each patch (front patches first, then back patches)
     patch_side : (P,) int          0 front, 1 back
     patch_rho, patch_emission : (P, C) float
+    patch_opposite : (P,) int; patch_transmittance : (P, C) float
+        the patch on the other side of the triangle (-1: none) and the fraction of the irradiance
+        handed to it (leaves only, docs/leaves.md)
     curve_center, curve_axis : (T, 3) float; curve_radius : (T,) float
         true-surface projection for tessellated spheres/cylinders (radius 0: flat)
     light_emitters : list          non-area Mitsuba emitters (direct-light pass)

@@ -245,6 +245,20 @@ def test_loader_reads_a_twosided_pair_per_side():
     check_patches(scene)
 
 
+def test_loader_reads_a_blend_of_a_leaf_and_a_one_sided_diffuse():
+    """blendbsdf, weight 1/2: front rho (0.2 + 0.6) / 2, back 0.2 / 2 (diffuse is one-sided), tau 0.4 / 2
+    both ways. A leaf beside an opaque back in twosided transmits one way only: refused."""
+    scene = load(sun_scene({"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse", "reflectance": 0.6},
+                            "b": leaf([0.2] * 3, [0.4] * 3)}))
+    assert scene.tri_leaf.all()
+    for values, expected in ((scene.tri_rho, 0.4), (scene.back_rho, 0.1), (scene.tri_transmittance, 0.2),
+                             (scene.back_transmittance, 0.2)):
+        np.testing.assert_allclose(values, expected, rtol=F32)
+    check_patches(scene)
+    with pytest.raises(mirad.SceneError, match=r"front side transmits 0\.3 and its back side 0;"):
+        load(sun_scene(pair(leaf([0.2] * 3, [0.3] * 3), {"type": "diffuse"})))
+
+
 def check_patches(scene):
     """patch_opposite pairs the two sides of a triangle; patch_transmittance is the side's own value."""
     P, T = len(scene.patch_tri), scene.triangle_count
