@@ -38,7 +38,7 @@ from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choos
                      face_mean_errors, link_values, power_errors, refinement_threshold)
 from .scene import Scene
 from .settings import Settings
-from .transfer import NodeBuffers, evaluate
+from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET
 
 #: Most points per leaf for the direct light of point/sky emitters.
@@ -70,6 +70,7 @@ class State:
     direct: np.ndarray | None = None          # (N, C) direct irradiance of leaves, W/m^2
     direct_error: np.ndarray | None = None    # (N, C) its standard error
     direct_samples: np.ndarray | None = None  # (N,) points it came from
+    buried: np.ndarray | None = None          # (N,) share of a triangle node's area inside closed geometry
     rays: int = 0
     waves: int = 0
 
@@ -80,6 +81,7 @@ class State:
         self.direct = np.zeros((n, self.channels))
         self.direct_error = np.zeros((n, self.channels))
         self.direct_samples = np.zeros(n, np.int64)
+        self.buried = np.zeros(n)
 
 
 def _surface(scene: Scene, channels: int, seed: int) -> Surface:
@@ -113,6 +115,7 @@ def build(scene: Scene, settings: Settings) -> State:
                   total_area=total,
                   min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
                   offset=RAY_OFFSET * scene.diagonal, links=Links())
+    _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
     state.timing["build"] += time.perf_counter() - t
     return state
 
@@ -201,6 +204,10 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         split_triangles(nodes, need, state.surface)
         if len(nodes) > n_before:
             _grow_direct(state, n_before)
+            # (children of a triangle none of whose points was buried are not either, to
+            # the resolution of its SOURCE_POINTS points: they are not traced)
+            grown = np.arange(n_before, len(nodes))
+            _measure_buried(state, grown[state.buried[nodes.parent[grown]] > 0])
         # --- children links ----------------------------------------------------------------
         s_idx = np.flatnonzero(dec.split_src)
         kids = nodes.children[part.src[s_idx]]
@@ -228,6 +235,16 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         state.links = kept.extend(new)
     state.timing["refine"] += time.perf_counter() - t0
     return changed, capped
+
+
+def _measure_buried(state: State, ids: np.ndarray) -> None:
+    """Buried share of triangle nodes ids, from their source points (transfer.buried_fraction)."""
+    grown = len(state.nodes) - len(state.buried)
+    if grown > 0:
+        state.buried = np.concatenate([state.buried, np.zeros(grown)])
+    if len(ids):
+        nodes = state.nodes
+        state.buried[ids] = buried_fraction(state.scene.mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset)
 
 
 def _grow_direct(state: State, n_before: int) -> None:
@@ -309,8 +326,12 @@ def solve(state: State, previous: Solved | None) -> Solved:
     nodes = state.nodes
     leaves = nodes.leaves
     push = ancestor_matrix(nodes, leaves)
-    area = nodes.area
-    pull = (sp.diags(1.0 / np.maximum(area, 1e-300)) @ push.T.tocsr() @ sp.diags(area[leaves])).tocsr()
+    # a node sends its power over its area that is not buried (inside closed geometry,
+    # where the radiosity is zero and which no one sees): its leaves' power over that area
+    area = nodes.area[leaves]
+    visible = push.T.tocsr() @ (area * (1.0 - state.buried[leaves]))
+    scale = np.where(visible > 1e-12 * np.maximum(nodes.area, 1e-300), 1.0 / np.maximum(visible, 1e-300), 0.0)
+    pull = (sp.diags(scale) @ push.T.tocsr() @ sp.diags(area)).tocsr()
     rho = state.patch_rho[nodes.patch[leaves]]
     emission = state.patch_emission[nodes.patch[leaves]] + rho * state.direct[leaves]
     system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, emission)
@@ -489,7 +510,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         offset = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
         patch = below.indices[np.repeat(start, count) + offset]
         k = ok[owner]
-        value = a[k] + np.einsum("mc,mc->m", grad[k], centroid[patch] - x0[k])
+        # (a patch's buried part, inside closed geometry, gets no light)
+        value = (a[k] + np.einsum("mc,mc->m", grad[k], centroid[patch] - x0[k])) * (1.0 - state.buried[patch])
         # the fit's residual is the interpolation's error, counted like visibility noise
         smooth_parts.append((patch, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
         # the others go one level down the receiver's tree

@@ -204,3 +204,27 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     gv_point = g_e * vis_point + g_vol_v / r_count
     return (g_out.astype(np.float32), gv_link.astype(np.float32), gv_point.astype(np.float32),
             int(round(float(n_traced[0]))))
+
+
+def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:
+    """(N,) fraction of each node's points (N, S, 3), with normals (N, S, 3), that lie
+    inside closed geometry: a ray from the point along its normal first meets the back of a
+    one-sided surface (the floor under a box standing on it).
+
+    That part of a surface is seen from nowhere; its radiosity is zero, so the light a
+    node sends is its power over the area that is not buried (``core.solve``)."""
+    n, s = points.shape[:2]
+    out = np.zeros(n)
+    per_launch = max(1, MAX_LANES // max(s, 1))
+    back_side = int(mi.BSDFFlags.BackSide)
+    for a in range(0, n, per_launch):
+        b = min(n, a + per_launch)
+        p = to_vector3(points[a:b].reshape(-1, 3))
+        d = to_vector3(normals[a:b].reshape(-1, 3))
+        ray = mi.Ray3f(p + d * offset, d)
+        si = mi_scene.ray_intersect(ray)
+        flags = si.bsdf(ray).flags()
+        inside = si.is_valid() & (dr.dot(si.n, d) > 0) & ((flags & back_side) == 0)
+        hit = np.asarray(dr.select(inside, 1.0, 0.0).numpy(), np.float64).reshape(b - a, s)
+        out[a:b] = hit.mean(axis=1)
+    return out
