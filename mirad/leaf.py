@@ -58,6 +58,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 
 import drjit as dr  # noqa: E402
@@ -87,18 +89,23 @@ def constant_value(texture) -> list | None:
     return [float(v) for v in dr.ravel(value)]
 
 
-def texel_range(texture) -> tuple[float, float] | None:
-    """(min, max) over the texels of a bitmap texture in an RGB variant (what its lookups interpolate
-    between), or None for any other texture (checked point by point by mirad's loader)."""
+def texel_range(texture) -> tuple[list, list] | None:
+    """Per-channel (min, max), lists of 3 floats, over the texels of a floating-point bitmap texture
+    in an RGB variant (its lookups interpolate between texels, so they stay within), or None for any
+    other texture. 8- and 16-bit bitmaps are stored encoded (sRGB unless ``raw``), always within
+    [0, 1]; they and every other texture are checked point by point by mirad's loader."""
     if not mi.is_rgb or not texture.class_name().startswith("Bitmap"):
         return None
     params = mi.traverse(texture)
     if "data" not in params.keys():
         return None
-    data = params["data"].numpy()
-    if data.size == 0:
+    data = np.asarray(params["data"].numpy())
+    if data.size == 0 or data.ndim != 3 or not np.issubdtype(data.dtype, np.floating):
         return None
-    return float(data.min()), float(data.max())
+    lo, hi = data.min(axis=(0, 1)).astype(np.float64), data.max(axis=(0, 1)).astype(np.float64)
+    if len(lo) not in (1, 3):
+        return None
+    return np.broadcast_to(lo, (3,)).tolist(), np.broadcast_to(hi, (3,)).tolist()
 
 
 def check_values(name: str, reflectance, transmittance) -> None:
@@ -111,18 +118,18 @@ def check_values(name: str, reflectance, transmittance) -> None:
     ranges = {}
     for param, tex in (("reflectance", reflectance), ("transmittance", transmittance)):
         const = constant_value(tex)
-        lo_hi = (min(const), max(const)) if const is not None else texel_range(tex)
+        lo_hi = (const, const) if const is not None else texel_range(tex)
         if lo_hi is None:
             continue
-        ranges[param] = (const, lo_hi)
-        if lo_hi[0] < -SLACK:
-            raise LeafError(f"{name}: {param} {lo_hi[0]:.3g} < 0; give a {param} between 0 and 1")
-        if lo_hi[1] > 1 + SLACK:
-            raise LeafError(f"{name}: {param} {lo_hi[1]:.3g} > 1 breaks energy conservation; "
+        ranges[param] = (const, lo_hi[1])
+        if min(lo_hi[0]) < -SLACK:
+            raise LeafError(f"{name}: {param} {min(lo_hi[0]):.3g} < 0; give a {param} between 0 and 1")
+        if max(lo_hi[1]) > 1 + SLACK:
+            raise LeafError(f"{name}: {param} {max(lo_hi[1]):.3g} > 1 breaks energy conservation; "
                             f"give a {param} between 0 and 1")
     if len(ranges) < 2:
         return
-    (c_r, (_, max_r)), (c_t, (_, max_t)) = ranges["reflectance"], ranges["transmittance"]
+    (c_r, max_r), (c_t, max_t) = ranges["reflectance"], ranges["transmittance"]
     if c_r is not None and c_t is not None:
         sums = [r + t for r, t in zip(c_r, c_t)]
         worst = max(range(len(sums)), key=lambda i: sums[i])
@@ -132,11 +139,14 @@ def check_values(name: str, reflectance, transmittance) -> None:
             raise LeafError(f"{name}: reflectance {c_r[worst]:.3g} + transmittance {c_t[worst]:.3g} = "
                             f"{sums[worst]:.3g} > 1{where} breaks energy conservation; {fix_sum}")
     elif c_r is not None or c_t is not None:
-        # a constant and a bitmap: the sum's largest value is the constant's plus the texels' largest
-        total = (max(c_r) if c_r is not None else max_r) + (max(c_t) if c_t is not None else max_t)
-        if total > 1 + SLACK:
-            raise LeafError(f"{name}: reflectance + transmittance reaches {total:.3g} > 1 (a texel of the "
-                            f"bitmap plus the constant) and breaks energy conservation; {fix_sum}")
+        # a constant and a bitmap: per channel, the sum's largest value is the constant plus the
+        # largest texel (reached at that texel)
+        totals = [r + t for r, t in zip(max_r, max_t)]
+        worst = max(range(3), key=lambda i: totals[i])
+        if totals[worst] > 1 + SLACK:
+            raise LeafError(f"{name}: reflectance + transmittance reaches {totals[worst]:.3g} > 1 in the "
+                            f"{CHANNELS[worst]} channel (a texel of the bitmap plus the constant) and breaks "
+                            f"energy conservation; {fix_sum}")
 
 
 def is_leaf(bsdf) -> bool:
@@ -146,6 +156,11 @@ def is_leaf(bsdf) -> bool:
     Such a BSDF is exactly a radiosity surface with a transmittance, which mirad's loader measures per
     side (``Scene.tri_leaf``). Judged by the lobe flags, since a Python plugin's ``class_name()`` is
     just "BSDF"; glass (delta or glossy lobes) and opacity masks (null lobe) are not leaves.
+
+    >>> is_leaf(mi.load_dict({"type": "leaf", "reflectance": 0.1, "transmittance": 0.05}))  # doctest: +SKIP
+    True
+    >>> is_leaf(mi.load_dict({"type": "thindielectric"}))                                 # doctest: +SKIP
+    False
     """
     if bsdf is None:
         return False

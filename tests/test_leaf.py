@@ -426,6 +426,9 @@ def test_textures_are_checked_point_by_point():
     with pytest.raises(mirad.SceneError, match="reaches 1.3 > 1"):
         mirad.load_scene(sun_scene({"type": "leaf", "reflectance": bitmap([[[0.2] * 3, [0.8] * 3]]),
                                     "transmittance": 0.5}))
+    per_channel = load(sun_scene({"type": "leaf", "reflectance": bitmap([[[0.9, 0.1, 0.1], [0.1] * 3]]),
+                                  "transmittance": {"type": "rgb", "value": [0.05, 0.8, 0.8]}}))
+    assert np.all(per_channel.tri_rho + per_channel.tri_transmittance <= 1)    # 0.95, 0.9, 0.9 at most
     fine = load(sun_scene({"type": "leaf", "reflectance": bitmap([[[0.2] * 3, [0.8] * 3]]),
                            "transmittance": bitmap([[[0.7] * 3, [0.1] * 3]])}))
     assert np.all(fine.tri_rho + fine.tri_transmittance <= 1)
