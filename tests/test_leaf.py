@@ -296,6 +296,19 @@ def test_loader_reads_a_bitmap_leaf_per_triangle():
     check_patches(scene)
 
 
+def test_an_8_bit_image_leaf_loads_with_its_linear_values(tmp_path):
+    """PNG texels are stored sRGB-encoded (200 of 255); the leaf reads them as Mitsuba looks them up
+    (linear 0.578), and the loader refuses the raw reading (0.784) plus 0.3 above 1."""
+    path = tmp_path / "rho.png"
+    mi.Bitmap(np.full((2, 2, 3), 200, np.uint8)).write(str(path))
+    image = {"type": "bitmap", "filename": str(path)}
+    scene = load(sun_scene({"type": "leaf", "reflectance": image, "transmittance": 0.3}))
+    c = 200 / 255
+    np.testing.assert_allclose(scene.tri_rho, ((c + 0.055) / 1.055) ** 2.4, rtol=1e-3)   # sRGB to linear
+    with pytest.raises(mirad.SceneError, match=r"front reflectance 0\.784 \+ transmittance 0\.3"):
+        load(sun_scene({"type": "leaf", "reflectance": dict(image, raw=True), "transmittance": 0.3}))
+
+
 def clipped_area(tri: np.ndarray, u_max: float) -> float:
     """Area of the part u < u_max of a uv triangle (3, 2): Sutherland-Hodgman against one line."""
     poly = []
