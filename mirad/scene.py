@@ -201,8 +201,12 @@ class Scene:
 
     @property
     def grey(self) -> bool:
-        """True when every reflectance and emission is the same in all channels."""
+        """True when every reflectance, emission and leaf transmittance is the same in all channels."""
         rho, em = self.tri_rho, self.tri_emission
+        if self.diffuse_transmission:  # a grey leaf may transmit in colour (only leaf scenes look)
+            tau = self.patch_transmittance
+            if not np.all(tau == tau[:, :1]):
+                return False
         return bool(np.all(rho == rho[:, :1]) and np.all(em == em[:, :1]) and np.all(self.back_rho == self.back_rho[:, :1]))
 
     @property

@@ -352,6 +352,11 @@ def test_a_normal_mapped_leaf_is_measured_by_sampling_not_refused():
     check_patches(scene)
 
 
+def test_a_grey_leaf_that_transmits_in_colour_is_not_grey():
+    assert not load(sun_scene(leaf([0.2] * 3, [0.1, 0.3, 0.1]))).grey
+    assert load(sun_scene(leaf([0.2] * 3, [0.3] * 3))).grey
+
+
 def test_fingerprint_sees_the_transmittance_of_leaves():
     a, b = load(sun_scene(leaf())), load(sun_scene(leaf(tau=[0.3, 0.2, 0.5])))
     assert a.fingerprint != b.fingerprint
