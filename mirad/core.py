@@ -595,17 +595,23 @@ def source_state(state: State, solved: Solved) -> SourceState:
     b_node = solved.b_node
     b_leaf = solved.b_leaf
     system = solved.system
-    pull = system.pull.tocoo()
-    deviation = np.abs(b_leaf[pull.col] - b_node[pull.row]).max(axis=1)
-    measured = np.bincount(pull.row, weights=pull.data * deviation, minlength=len(state.nodes))
-    links = state.links
+    pull = system.pull                      # CSR (N, L): a row per node, its leaves' shares
     n = len(state.nodes)
-    variation = np.bincount(links.recv, weights=links.spread * b_node.max(axis=1)[links.src], minlength=n)
-    leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
-    estimated = system.pull @ (leaf_rho * (system.push @ variation))
-    dev = measured if SOURCE_DEVIATION == "measured" else np.maximum(measured, estimated)
-    below = np.zeros(len(state.nodes))
-    np.maximum.at(below, pull.row, b_leaf[pull.col].max(axis=1))
+    rows = np.repeat(np.arange(n), np.diff(pull.indptr))
+    deviation = np.abs(b_leaf[pull.indices] - b_node[rows]).max(axis=1)
+    measured = np.bincount(rows, weights=pull.data * deviation, minlength=n)
+    links = state.links
+    if SOURCE_DEVIATION == "measured":
+        dev = measured
+    else:
+        variation = np.bincount(links.recv, weights=links.spread * b_node.max(axis=1)[links.src], minlength=n)
+        leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
+        dev = np.maximum(measured, pull @ (leaf_rho * (system.push @ variation)))
+    # the brightest leaf below each node (a segmented maximum over the pull's rows)
+    below = np.zeros(n)
+    filled = np.flatnonzero(np.diff(pull.indptr) > 0)
+    if len(filled):
+        below[filled] = np.maximum.reduceat(b_leaf.max(axis=1)[pull.indices], pull.indptr[filled])
     leaf_area = state.nodes.area[solved.leaves]
     rho_mean = float((leaf_area * solved.system.rho.max(axis=1)).sum() / max(leaf_area.sum(), 1e-300))
     source = SourceState(b_node.max(axis=1), below, dev, rho_mean * amplification(state, solved))
