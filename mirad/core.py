@@ -551,7 +551,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         pair_rays = np.concatenate([pair_rays[~split], k_rays])
         g_ff = np.concatenate([g_ff[~split], k_ff])
         g_var = np.concatenate([g_var[~split], k_var])
-    var = np.bincount(pair_patch, weights=g_var, minlength=n_patch)
+    var = np.bincount(pair_patch, weights=g_var, minlength=n_patch).astype(np.float64)   # (int when empty)
     for part in smooth_parts:
         var += np.bincount(part[0], weights=part[3], minlength=n_patch)
     gathered_pairs = len(pair_patch)

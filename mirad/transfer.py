@@ -224,7 +224,9 @@ def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: f
         ray = mi.Ray3f(p + d * offset, d)
         si = mi_scene.ray_intersect(ray)
         flags = si.bsdf(ray).flags()
-        inside = si.is_valid() & (dr.dot(si.n, d) > 0) & ((flags & back_side) == 0)
+        # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
+        # geometric normal si.n points the other way)
+        inside = si.is_valid() & (dr.dot(si.sh_frame.n, d) > 0) & ((flags & back_side) == 0)
         hit = np.asarray(dr.select(inside, 1.0, 0.0).numpy(), np.float64).reshape(b - a, s)
         out[a:b] = hit.mean(axis=1)
     return out

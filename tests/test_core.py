@@ -173,3 +173,26 @@ def test_a_floor_running_under_a_box_sends_the_light_of_its_visible_part():
     side = (n[:, 0] < -0.5) | (n[:, 1] < -0.5)
     ratio = a.triangle_radiosity[box_a[side]] / b.triangle_radiosity[box_b[side]]
     assert np.all(np.abs(ratio - 1) < tol), ratio
+
+
+@pytest.mark.parametrize("mirrored", ["receiver", "light", "both"])
+def test_mirrored_shapes_receive_and_send_as_unmirrored(mirrored):
+    """A negative-determinant transform turns Mitsuba's geometric normal against the side it
+    lights (its shading normal); the core's buried-surface rays once took the geometric one,
+    read the floor under a mirrored light as inside closed geometry and gave it B = 0."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    flip = T().scale([-1, 1, 1])
+    down = T().translate([0, 0, 1]).rotate([1, 0, 0], 180)
+
+    def floor_radiosity(floor_xf, light_xf):
+        scene = mirad.load_scene({"type": "scene", "floor": square(floor_xf, rho=0.5, sid="floor"),
+                                  "light": square(down @ light_xf, rho=0.0, radiance=1.0, sid="light")})
+        return mirad.solve(scene, tolerance=0.05, **HIER).shape_radiosity("floor")[0]
+
+    plain = floor_radiosity(T(), T())
+    assert plain > 0.3
+    xf = {"receiver": (flip, T()), "light": (T(), flip), "both": (flip, flip)}[mirrored]
+    assert floor_radiosity(*xf) == pytest.approx(plain, rel=0.01)
+
