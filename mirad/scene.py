@@ -70,6 +70,10 @@ class Scene:
         ``shape`` id, ``bsdf`` class, ``what`` ("transmission", "opacity", "non-diffuse reflection"),
         ``area`` m^2, and area means (C,) of ``albedo`` (used), ``transmitted`` (lost), ``non_diffuse``
         (redirected); ``model_error()`` turns them into a relative error
+    shape_files : list             per shape (``shape_ids`` order), the mesh file it was read from as
+        (plugin type, path), e.g. ("ply", "plants/p1.ply"), or None (analytic shapes, meshes made in
+        code, an ``mi.Scene`` given as it is, or a file mirad cannot tell); ``mirad.organs`` reads the
+        file again for its face groups
     tri_leaf : (T,) bool           triangles whose BSDF is a leaf (``mirad/leaf.py``; or a ``twosided``
         or blend of leaves: every lobe diffuse, one of them transmitting): their transmittance is
         diffuse, the same both ways, and is what ``patch_transmittance`` hands to the other side
@@ -110,9 +114,12 @@ class Scene:
     approximations: list = field(default_factory=list)
     origin: np.ndarray | None = None
     tri_leaf: np.ndarray | None = None
+    shape_files: list = field(default_factory=list)
 
     def __post_init__(self):
         T = len(self.faces)
+        if not self.shape_files:
+            self.shape_files = [None] * len(self.shape_ids)
         self.origin = np.zeros(3) if self.origin is None else np.asarray(self.origin, dtype=np.float64)
         if self.tri_face is None:
             self.tri_face = np.arange(T)
@@ -706,6 +713,7 @@ def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | No
         back_rho=np.zeros((len(faces), 3)), curve_center=curve_center, curve_axis=curve_axis,
         curve_radius=curve_radius, vertex_uv=vertex_uv, light_emitters=[], light_kinds=[],
         variant=variant, dropped_triangles=dropped, tri_face=tri_face, origin=origin,
+        shape_files=_shape_files(shapes, meshes),
     )
     for message in pending:
         _warn_once(scene, message)
@@ -731,6 +739,29 @@ def _ingest(mi_scene, path: str | None, variant: str, *, origin: np.ndarray | No
                           "load the file with mirad.load_scene(path), or mi.load_file(path, optimize=False), "
                           "to keep every shape's id")
     return scene
+
+
+def _shape_files(shapes: list, meshes: list) -> list:
+    """The mesh file of each shape: (plugin type, path) or None; see ``Scene.shape_files``.
+
+    A shape with an id takes the file listed under that id; a mesh without one takes the file
+    whose name Mitsuba gives it, if exactly one unnamed shape's file has that name.
+    """
+    by_id = {sid: (kind, name) for sid, kind, name in meshes if sid}
+    unnamed = {}
+    for sid, kind, name in meshes:
+        if not sid:
+            unnamed.setdefault(os.path.basename(name), set()).add((kind, name))
+    files = []
+    for shape in shapes:
+        sid = shape.id()
+        if sid:
+            files.append(by_id.get(sid) if shape.is_mesh() else None)
+            continue
+        found = re.search(r'name = "([^"]*)"', str(shape)) if shape.is_mesh() else None
+        candidates = unnamed.get(found.group(1), set()) if found else set()
+        files.append(next(iter(candidates)) if len(candidates) == 1 else None)
+    return files
 
 
 #: Vertices closer than this fraction of the scene diagonal are the same point (topology checks).
