@@ -169,6 +169,17 @@ def _add_output_commands(sub, common, solver) -> None:
                         help="PLY colours: the 99th percentile of the non-emitting surfaces maps to white "
                              "(scene) or of all surfaces, lights included (all) (default scene)")
     export.add_argument("--shapes", default=None, help="per-shape summary .csv (mean radiosity, absorbed power)")
+    export.add_argument("--organs", default=None,
+                        help="per-organ table, .csv or .npz: absorbed and incident power (W), area, mean "
+                             "radiosity and irradiance, triangle count and centroid of each organ "
+                             "(see --organs-by)")
+    export.add_argument("--organs-by", default=None,
+                        help="what an organ is: component (each connected piece of a shape's mesh, such as "
+                             "a leaf; the default), group (face groups of the mesh files: a PLY face property "
+                             "named by --groups-property, or OBJ g/o groups) or shape")
+    export.add_argument("--groups-property", default=None,
+                        help="with --organs-by group: the integer PLY face property that numbers the organs, "
+                             "e.g. organ")
     export.add_argument("--lightmaps", default=None,
                         help="folder for one radiosity lightmap per shape with UVs and lightmaps.csv "
                              "naming the file of each shape id")
@@ -254,8 +265,9 @@ def _export(args) -> int:
     from mirad.errors import OutputError
     from mirad.files import check_output
 
-    if not (args.output or args.shapes or args.lightmaps):
-        raise OutputError("nothing to export; give -o FILE (.ply, .csv, .npz), --shapes FILE.csv or --lightmaps DIR")
+    if not (args.output or args.shapes or args.lightmaps or args.organs):
+        raise OutputError("nothing to export; give -o FILE (.ply, .csv, .npz), --shapes FILE.csv, "
+                          "--organs FILE (.csv, .npz) or --lightmaps DIR")
     for path in args.output:
         check_output(path, (".ply",) + export.TABLE_SUFFIXES)
     if args.shapes:
@@ -266,7 +278,8 @@ def _export(args) -> int:
         check_output(os.path.join(args.lightmaps, export.LIGHTMAP_INDEX))
     if args.lightmap_res < 1:
         raise OutputError(f"--lightmap-res {args.lightmap_res} must be >= 1 (e.g. 256)")
-    scene, sol = _solution(args)
+    loaded = _check_organs(args)
+    scene, sol = _solution(args, scene=loaded)
     written = []
     for path in args.output:
         if path.lower().endswith(".ply"):
@@ -275,6 +288,9 @@ def _export(args) -> int:
             written.append(export.write_table(sol, path))
     if args.shapes:
         written.append(export.write_shape_summary(sol, args.shapes))
+    if args.organs:
+        written.append(export.write_organ_table(sol, args.organs, by=args.organs_by or "component",
+                                                property=args.groups_property))
     if args.lightmaps:
         written += export.write_lightmaps(sol, args.lightmaps, resolution=args.lightmap_res,
                                           supersample=args.lightmap_supersample, error=args.error_maps,
@@ -282,6 +298,39 @@ def _export(args) -> int:
     if not args.quiet:
         print(f"wrote {', '.join(map(str, written))}")
     return 0
+
+
+def _check_organs(args):
+    """Check --organs, --organs-by and --groups-property before any work; with face groups, load
+    the scene and read its groups once (a wrong property is refused before solving). Returns
+    the loaded scene, or None."""
+    from mirad import export
+    from mirad.errors import SettingsError
+    from mirad.files import check_output
+
+    if not args.organs:
+        given = [flag for flag, value in (("--organs-by", args.organs_by), ("--groups-property", args.groups_property))
+                 if value is not None]
+        if given:
+            raise SettingsError(f"{' and '.join(given)} need{'s' if len(given) == 1 else ''} --organs FILE "
+                                "(.csv or .npz), the per-organ table to write")
+        return None
+    check_output(args.organs, export.TABLE_SUFFIXES)
+    by = args.organs_by or "component"
+    if by not in export.ORGAN_KINDS:
+        raise SettingsError(f"--organs-by {by} is unknown; choose component (connected pieces of each mesh, "
+                            "such as leaves), group (face groups of the mesh files) or shape")
+    if args.groups_property is not None and by != "group":
+        raise SettingsError(f"--groups-property {args.groups_property} only applies to --organs-by group; "
+                            "add --organs-by group or drop it")
+    if by != "group":
+        return None
+    import mirad
+    from mirad.organs import triangle_groups
+
+    scene = mirad.load_scene(args.scene, variant=args.variant)
+    triangle_groups(scene, property=args.groups_property)
+    return scene
 
 
 def _probe(args) -> int:

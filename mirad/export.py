@@ -1,8 +1,9 @@
-"""Files from a solution: PLY meshes, per-triangle and per-shape tables, EXR images and lightmaps.
+"""Files from a solution: PLY meshes, per-triangle, per-organ and per-shape tables, EXR images and lightmaps.
 
 Units: radiosity B and irradiance H in W/m^2 per channel, area in m^2, absorbed power in W.
 Absorbed power of a triangle is (1 - rho) * H * A per side, front plus back (two-sided BSDFs):
-the light a leaf of a plant model absorbs. Every file is written atomically.
+the light a leaf of a plant model absorbs. Organs (``organ_table``) are shapes, connected pieces
+of a mesh or face groups of its file (``mirad.organs``). Every file is written atomically.
 """
 
 from __future__ import annotations
@@ -17,14 +18,18 @@ import numpy as np
 from .arrays import group_mean, group_sum, to_point3, to_vector3
 from .errors import OutputError, SettingsError
 from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_exr
+from .organs import ORGAN_KINDS, triangle_components, triangle_groups
 
 __all__ = ["write_ply", "refined_mesh", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
+           "organ_table", "write_organ_table", "check_organ_options", "ORGAN_KINDS",
            "bake_lightmaps", "write_lightmaps", "exr_bytes", "png_bytes", "read_exr", "read_points",
            "write_probe_table", "lightmap_names", "TABLE_SUFFIXES", "PROBE_COLUMNS", "PLY_MESHES"]
 
 #: Output suffixes of the per-triangle table.
 TABLE_SUFFIXES = (".csv", ".npz")
 _CHANNELS = "rgb"
+#: (N, 3) table columns that are positions: written as name_x, name_y, name_z.
+_POSITIONS = ("centroid",)
 #: What ``write_ply`` writes: the input mesh or the refined mesh of the solution's leaves.
 PLY_MESHES = ("input", "refined")
 #: Columns a probe file must have (any order, more columns are ignored).
@@ -161,8 +166,9 @@ def _columns(table: dict) -> list:
     for name, values in table.items():
         values = np.asarray(values)
         if values.ndim == 2:
+            suffixes = "xyz" if name in _POSITIONS else _CHANNELS
             for c in range(values.shape[1]):
-                cols.append((f"{name}_{_CHANNELS[c]}", values[:, c]))
+                cols.append((f"{name}_{suffixes[c]}", values[:, c]))
         else:
             cols.append((name, values))
     return cols
@@ -202,6 +208,98 @@ def write_shape_summary(solution, path) -> Path:
     if path.suffix.lower() != ".csv":
         raise OutputError(f"shape summary '{path}' must end in .csv")
     data = _csv_bytes(shape_summary(solution))
+    atomic_write(path, lambda handle: handle.write(data))
+    return path
+
+
+# ------------------------------------------------------------------------------------------
+# Organs
+# ------------------------------------------------------------------------------------------
+
+def check_organ_options(*, by: str = "component", property: str | None = None) -> None:
+    """Refuse an unknown ``by`` or a ``property`` given where it has no use (SettingsError)."""
+    if by not in ORGAN_KINDS:
+        raise SettingsError(f"organs by={by!r} is unknown; choose one of {', '.join(ORGAN_KINDS)} (component: "
+                            "connected pieces of each mesh, such as leaves; group: face groups of the mesh "
+                            "files; shape: whole shapes)")
+    if property is not None and by != "group":
+        raise SettingsError(f"a groups property ({property!r}) only applies to organs by group, not by {by!r}; "
+                            "drop it or count organs by group")
+    if property is not None and (not isinstance(property, str) or not property.strip()):
+        raise SettingsError(f"groups property {property!r} must be the name of an integer PLY face property, "
+                            "e.g. 'organ'")
+
+
+def organ_table(solution, *, by: str = "component", property: str | None = None) -> dict:
+    """Per organ: dict of arrays, N rows each (N organs, C channels).
+
+    ``by``: what an organ is (``mirad.organs``): ``"component"``, a connected piece of a shape's
+    mesh (a leaf); ``"group"``, a face group of its mesh file (the integer PLY face property named
+    by ``property``, or OBJ ``g``/``o`` groups; shapes without groups are one group named by the
+    shape id); ``"shape"``, the whole shape (every shape has a row, even one without triangles).
+    Needs the solution's scene (``solution.attach``).
+
+    Columns: ``shape`` (N,) int index into ``shape_ids``; ``shape_id`` (N,) str; ``component``
+    (N,) int, the piece's index within its shape (by component) or ``group`` (N,) str, the group's
+    name (by group); ``triangles`` (N,) int; ``area`` (N,) m^2; ``absorbed`` (N, C) W, front plus
+    back, as in ``triangle_table``; ``incident`` (N, C) W, irradiance times area, front plus back;
+    ``mean_radiosity``, ``mean_irradiance``, ``mean_back_irradiance`` (N, C) W/m^2, area-weighted
+    (front side; back side, zero where one-sided), so that incident = (mean_irradiance +
+    mean_back_irradiance) * area; ``centroid`` (N, 3) m, area-weighted, in the user's coordinates
+    (NaN for a shape without triangles). Sums over the rows of a shape are the shape's totals.
+
+    >>> table = organ_table(sol, by="component")          # doctest: +SKIP
+    >>> table["absorbed"].shape                            # doctest: +SKIP
+    (12, 3)
+    """
+    check_organ_options(by=by, property=property)
+    scene = solution.require_scene()
+    table = triangle_table(solution)
+    shape, area = table["shape"], table["area"]
+    extra = {}
+    if by == "shape":
+        organ, count = shape, len(solution.shape_ids)
+        organ_shape = np.arange(count)
+    elif by == "component":
+        organ, organ_shape, index = triangle_components(solution.vertices, solution.faces, shape)
+        count, extra = len(organ_shape), {"component": index}
+    else:
+        organ, organ_shape, names = triangle_groups(scene, property=property)
+        count, extra = len(organ_shape), {"group": names}
+    h, h_back = table["irradiance"], table["back_irradiance"]
+    centre = solution.vertices[solution.faces].mean(axis=1)
+    triangles = np.bincount(organ, minlength=count)
+    centroid = scene.to_user(group_mean(organ, centre, count, weights=area))
+    centroid[triangles == 0] = np.nan
+    return {
+        "shape": organ_shape,
+        "shape_id": np.asarray(solution.shape_ids, dtype=str)[organ_shape],
+        **extra,
+        "triangles": triangles,
+        "area": group_sum(organ, area, count),
+        "absorbed": group_sum(organ, table["absorbed"], count),
+        "incident": group_sum(organ, h + h_back, count, weights=area),
+        "mean_radiosity": group_mean(organ, table["radiosity"], count, weights=area),
+        "mean_irradiance": group_mean(organ, h, count, weights=area),
+        "mean_back_irradiance": group_mean(organ, h_back, count, weights=area),
+        "centroid": centroid,
+    }
+
+
+def write_organ_table(solution, path, *, by: str = "component", property: str | None = None) -> Path:
+    """Per-organ table (``organ_table``) as .csv (one row per organ; (N, 3) columns as
+    ``_r, _g, _b`` or ``centroid_x, _y, _z``) or .npz (the arrays as they are)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in TABLE_SUFFIXES:
+        raise OutputError(f"organ table '{path}' must end in .csv or .npz")
+    table = organ_table(solution, by=by, property=property)
+    if suffix == ".csv":
+        data = _csv_bytes(table)
+    else:
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **table)
+        data = buffer.getvalue()
     atomic_write(path, lambda handle: handle.write(data))
     return path
 
