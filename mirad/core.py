@@ -469,6 +469,16 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     return smooth, x0, a, grad, rms
 
 
+def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M,) W^2/m^4: the variance of its visibility noise a gathered pair (M,) may have.
+
+    ff: the pair's form factor; b_src the source's radiosity and h_recv the receiver's whole
+    irradiance (W/m^2). The pairs on one receiver err independently, so allowing each
+    (GATHER_SHARE tol)^2 h F b keeps their sum within (GATHER_SHARE tol h)^2, the share
+    ``smooth_links`` allows its fits."""
+    return (GATHER_SHARE * tolerance) ** 2 * np.maximum(h_recv * ff * b_src, 0.0)
+
+
 def final_gather(state: State, solved: Solved) -> Gathered:
     """Stage gather: the light of links on face clusters, gathered again on each input
     patch from the sources' solved radiosity.
@@ -531,6 +541,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     pair_patch, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
     g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_patch, pair_src, pair_rays)
     inner += seconds
+    # pairs whose few rays disagreed more than their share of the tolerance allows are
+    # evaluated again with a ray to each of the source's points (a quadrature, not a sample)
+    noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_patch],
+                                                     state.settings.tolerance)) & (pair_rays < SOURCE_POINTS))
+    if len(noisy):
+        pair_rays[noisy] = SOURCE_POINTS
+        g_ff[noisy], g_var[noisy], seconds = _evaluate_pairs(state, solved, pair_patch[noisy], pair_src[noisy],
+                                                             pair_rays[noisy])
+        inner += seconds
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
