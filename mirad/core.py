@@ -327,13 +327,17 @@ def solve(state: State, previous: Solved | None) -> Solved:
     t = time.perf_counter()
     nodes = state.nodes
     leaves = nodes.leaves
-    push = ancestor_matrix(nodes, leaves)
-    # a node sends its power over its area that is not buried (inside closed geometry,
-    # where the radiosity is zero and which no one sees): its leaves' power over that area
-    area = nodes.area[leaves]
-    visible = push.T.tocsr() @ (area * (1.0 - state.buried[leaves]))
-    scale = np.where(visible > 1e-12 * np.maximum(nodes.area, 1e-300), 1.0 / np.maximum(visible, 1e-300), 0.0)
-    pull = (sp.diags(scale) @ push.T.tocsr() @ sp.diags(area)).tocsr()
+    if previous is not None and previous.system.push.shape[1] == len(nodes):
+        # no node made since (leaves and buried shares unchanged): the same push and pull
+        push, pull = previous.system.push, previous.system.pull
+    else:
+        push = ancestor_matrix(nodes, leaves)
+        # a node sends its power over its area that is not buried (inside closed geometry,
+        # where the radiosity is zero and which no one sees): its leaves' power over that area
+        area = nodes.area[leaves]
+        visible = push.T.tocsr() @ (area * (1.0 - state.buried[leaves]))
+        scale = np.where(visible > 1e-12 * np.maximum(nodes.area, 1e-300), 1.0 / np.maximum(visible, 1e-300), 0.0)
+        pull = (sp.diags(scale) @ push.T.tocsr() @ sp.diags(area)).tocsr()
     rho = state.patch_rho[nodes.patch[leaves]]
     emission = state.patch_emission[nodes.patch[leaves]] + rho * state.direct[leaves]
     system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, emission)
