@@ -141,6 +141,7 @@ def _validate(args) -> int:
 
 def _add_output_commands(sub, common, solver) -> None:
     from mirad import options as _options
+    from mirad.solution import PROBE_MAX_SAMPLES
 
     solved = argparse.ArgumentParser(add_help=False)
     solved.add_argument("--solution", default=None,
@@ -192,8 +193,12 @@ def _add_output_commands(sub, common, solver) -> None:
     probe = sub.add_parser("probe", parents=[common, solved, solver], help="irradiance at sensor points")
     probe.add_argument("--points", required=True, help="CSV file with a header and columns x,y,z,nx,ny,nz")
     probe.add_argument("-o", "--output", required=True,
-                       help="CSV out: x,y,z,nx,ny,nz and irradiance_r,g,b (W/m^2)")
+                       help="CSV out: x,y,z,nx,ny,nz, irradiance_r,g,b and its standard error err_r,g,b (W/m^2)")
     probe.add_argument("--rays", type=int, default=16, help="shadow rays per element and point (default 16)")
+    probe.add_argument("--probe-tolerance", type=float, default=None,
+                       help="relative standard error per probe: direct light of point, spot, directional and "
+                            f"environment emitters is sampled until each probe is within it (up to "
+                            f"{PROBE_MAX_SAMPLES} samples; default: the solve's tolerance)")
 
 
 def _xml_integrator(scene) -> dict:
@@ -341,10 +346,14 @@ def _probe(args) -> int:
     check_output(args.output, (".csv",))
     if args.rays < 1:
         raise SettingsError(f"--rays {args.rays} must be >= 1")
+    tol = args.probe_tolerance
+    if tol is not None and not 0 < tol < 1:
+        raise SettingsError(f"--probe-tolerance {tol:g} must be a relative standard error between 0 and 1 "
+                            "(exclusive), e.g. 0.01")
     points, normals = read_points(args.points)
     scene, sol = _solution(args)
-    irradiance = sol.irradiance_at(points, normals, rays=args.rays)
-    write_probe_table(args.output, points, normals, irradiance)
+    irradiance, error = sol.irradiance_at(points, normals, rays=args.rays, tolerance=tol, with_error=True)
+    write_probe_table(args.output, points, normals, irradiance, error)
     if not args.quiet:
         print(f"wrote {args.output} ({len(points)} points)")
     return 0

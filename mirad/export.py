@@ -352,11 +352,15 @@ def read_points(path) -> tuple:
     return values[:, :3], values[:, 3:]
 
 
-def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance: np.ndarray) -> Path:
-    """CSV with x,y,z,nx,ny,nz and irradiance_r,g,b (W/m^2) per point."""
+def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance: np.ndarray,
+                      error: np.ndarray | None = None) -> Path:
+    """CSV with x,y,z,nx,ny,nz, irradiance_r,g,b (W/m^2) and, given ``error`` (P, C), its standard
+    error err_r,g,b (W/m^2, ``Solution.irradiance_at(..., with_error=True)``) per point."""
     path = Path(path)
     table = {name: col for name, col in zip(PROBE_COLUMNS, np.column_stack([points, normals]).T)}
     table["irradiance"] = np.asarray(irradiance, dtype=np.float64)
+    if error is not None:
+        table["err"] = np.asarray(error, dtype=np.float64)
     data = _csv_bytes(table)
     return atomic_write(path, lambda handle: handle.write(data))
 

@@ -3,16 +3,27 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .arrays import LEAF_CORNER_UV, group_mean, group_sum, scene_diagonal
-from .errors import OutputError, SolutionMismatch
+from .errors import OutputError, SettingsError, SolutionMismatch
 from .files import atomic_write
 
 #: Format version of saved .npz solutions.
 FORMAT = 1
+
+#: Probes (``Solution.irradiance_at``): direct-light samples per point in the first round, the cap
+#: on them (as ``Settings.samples_per_link``'s bound) and the relative tolerance when neither the
+#: call nor the solve gives one.
+PROBE_FIRST_SAMPLES = 64
+PROBE_MAX_SAMPLES = 1 << 16
+PROBE_TOLERANCE = 0.01
+#: Probes aim their direct-light samples at this fraction of the tolerance (1/sqrt 2: up to 2x the
+#: samples the pilot predicts, so that the round kept seldom misses the tolerance).
+PROBE_MARGIN = 0.5 ** 0.5
 
 
 #: Arrays every solution holds (keys of the saved .npz).
@@ -354,18 +365,61 @@ class Solution:
             raise KeyError(f"no shape with id {shape_id!r}; ids are {self.shape_ids}") from None
 
     # --- queries ---------------------------------------------------------------------------------
-    def irradiance_at(self, points, normals, *, rays: int = 4, seed: int = 0, progress=None) -> np.ndarray:
-        """Irradiance (P, C), W/m^2, at points (P, 3) facing normals (P, 3).
+    def irradiance_at(self, points, normals, *, rays: int = 4, seed: int = 0, tolerance: float | None = None,
+                      max_samples: int = PROBE_MAX_SAMPLES, with_error: bool = False, progress=None):
+        """Irradiance (P, C), W/m^2, at points (P, 3) facing normals (P, 3); with ``with_error``,
+        (irradiance, standard error (P, C), W/m^2).
 
         A local gather over every leaf element of the solution (Lambert form factor to the
         leaf times its radiosity, with ``rays`` shadow rays per leaf), plus the direct light
-        of point, spot, directional and environment emitters. ``progress``: optional callable
-        given the number of points gathered after each launch (e.g. a tqdm bar's ``update``).
+        of point, spot, directional and environment emitters, sampled with Mitsuba's own
+        ``Emitter.sample_direction`` and one shadow ray per sample.
+
+        The direct light starts from a pilot of ``PROBE_FIRST_SAMPLES`` (64) samples per point.
+        Each point it finds noisy gets fresh samples (another seed) at the count its pilot predicts
+        for ``tolerance`` (a power of 4 times 64), and rounds of 4x or more while its relative
+        standard error stays above ``tolerance`` in some channel (one vectorised launch per count
+        over the points that need it), up to ``max_samples``. The estimate kept never chose its own
+        count, so the stopping rule adds no bias. The standard error combines both parts in
+        quadrature: the direct light's sample standard deviation over sqrt(samples) and the
+        gather's visibility noise (``visibility.gather_at_points``; zero where every leaf is fully
+        visible or fully hidden, and with ``rays=1``). It is the noise of this estimate around the
+        solution's one-bounce irradiance, not the solution's own error (``leaf_error``). Points
+        left above the tolerance are counted and named in one warning: raise ``max_samples`` where
+        the direct light stopped at it, ``rays`` where the gather's noise alone exceeds it.
+        Point, spot and directional lights are sampled exactly (zero error at 64 samples), and a
+        scene with area lights only has no direct part: both give what a fixed 64 samples gave.
+
+        Parameters
+        ----------
+        points, normals : (P, 3) float          points (m, the user's frame) and the directions they face
+        rays : int, default 4                    shadow rays per leaf and point in the gather
+        seed : int, default 0                    same seed, same points: bitwise same result
+        tolerance : float or None                relative standard error per point and channel, in (0, 1);
+            default the solution's own tolerance (``stats["settings"]["tolerance"]``), else 0.01
+        max_samples : int, default 65536         cap on the direct-light samples per point, 1 to 65536
+            (64 or less: a fixed count, no error control)
+        with_error : bool, default False         also return the standard error
+        progress : callable or None              given the number of points gathered after each launch
+            (e.g. a tqdm bar's ``update``)
+
+        Returns
+        -------
+        (P, C) float, W/m^2, or with ``with_error`` a tuple of two (P, C) float arrays, W/m^2
+        (C = 3 where the scene has point, spot, directional or environment emitters)
+
+        >>> h, err = sol.irradiance_at([[0, 0, 0]], [[0, 0, 1]], with_error=True)   # doctest: +SKIP
+        >>> bool(np.all(err <= 0.01 * h))                                            # doctest: +SKIP
+        True
         """
-        from .emitters import direct_irradiance
         from .visibility import Geometry, gather_at_points
 
         scene = self.require_scene()
+        tolerance = self._probe_tolerance(tolerance)
+        if (isinstance(max_samples, bool) or not isinstance(max_samples, (int, np.integer))
+                or not 1 <= max_samples <= PROBE_MAX_SAMPLES):
+            raise SettingsError(f"max_samples={max_samples!r} must be an integer from 1 to {PROBE_MAX_SAMPLES} "
+                                f"(direct-light samples per probe; e.g. {PROBE_MAX_SAMPLES})")
         points = np.atleast_2d(np.asarray(points, dtype=np.float64))
         normals = np.atleast_2d(np.asarray(normals, dtype=np.float64))
         if points.shape[1:] != (3,) or normals.shape != points.shape:
@@ -382,20 +436,93 @@ class Solution:
         center, axis, radius = self.triangle_curve
         geo = Geometry.upload(self.leaf_vertices, self.leaf_normal, center[tri], axis[tri], radius[tri],
                               scene.diagonal)
-        h = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed,
-                             progress=progress)
+        h, err = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed,
+                                  progress=progress, with_error=True)
         if scene.light_emitters:
-            # a tiny triangle around each point stands in for the point
-            r = 1e-7 * scene.diagonal
-            t1 = np.cross(normals, np.where(np.abs(normals[:, :1]) < 0.9, [[1, 0, 0]], [[0, 1, 0]]))
-            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-            t2 = np.cross(normals, t1)
-            tri_pts = np.stack([points + r * t1, points + r * t2, points - r * (t1 + t2)], 1)
-            zero = np.zeros((len(points), 3))
-            hd, _ = direct_irradiance(scene, tri_pts, normals, (zero, zero, np.zeros(len(points))),
-                                      samples=64, seed=seed, keys=np.arange(len(points)))
-            h = h + hd
-        return h
+            h, err = self._probe_direct(scene, points, normals, h, err, tolerance=tolerance,
+                                        max_samples=max_samples, seed=seed, rays=rays)
+        return (h, err) if with_error else h
+
+    def _probe_tolerance(self, tolerance) -> float:
+        """The probes' relative tolerance: given, else the solve's, else 0.01 (SettingsError if outside (0, 1))."""
+        if tolerance is None:
+            tolerance = (self.stats.get("settings") or {}).get("tolerance") or PROBE_TOLERANCE
+        if (isinstance(tolerance, bool) or not isinstance(tolerance, (int, float, np.floating, np.integer))
+                or not 0 < tolerance < 1):
+            raise SettingsError(f"tolerance={tolerance!r} must be a relative standard error between 0 and 1 "
+                                f"(exclusive), e.g. {PROBE_TOLERANCE}")
+        return float(tolerance)
+
+    @staticmethod
+    def _probe_direct(scene, points, normals, h_gather, err_gather, *, tolerance, max_samples, seed, rays):
+        """Direct light at probes (P, 3) and its standard error, W/m^2, added to the gather's (``irradiance_at``)."""
+        from .emitters import direct_irradiance
+
+        n_pts = len(points)
+        # a tiny triangle around each point stands in for the point
+        r = 1e-7 * scene.diagonal
+        t1 = np.cross(normals, np.where(np.abs(normals[:, :1]) < 0.9, [[1, 0, 0]], [[0, 1, 0]]))
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(normals, t1)
+        tri_pts = np.stack([points + r * t1, points + r * t2, points - r * (t1 + t2)], 1)
+        zero = np.zeros((n_pts, 3))
+        curve = (zero, zero, np.zeros(n_pts))
+        keys = np.arange(n_pts)
+        samples = np.full(n_pts, min(PROBE_FIRST_SAMPLES, max_samples), np.int64)
+        hd, ed, _ = direct_irradiance(scene, tri_pts, normals, curve, samples=int(samples[0]), seed=seed,
+                                      keys=keys, with_error=True)
+        var_gather = err_gather * err_gather
+        # the gather's noise is fixed by ``rays``: more direct samples cannot help where it alone is above
+        gather_over = np.any(err_gather > tolerance * (h_gather + hd), axis=1)
+
+        def above(idx):
+            h = h_gather[idx] + hd[idx]
+            return np.any(np.sqrt(var_gather[idx] + ed[idx] * ed[idx]) > tolerance * h, axis=1)
+
+        # The first round is a pilot: every point whose direct light is sampled (non-zero error; point,
+        # spot and directional lights are exact) and below the cap gets at least one more round of
+        # fresh samples (another seed) at the count its pilot predicts: the estimate kept never chose
+        # its own count, which would bias it (a point whose samples came out high looks converged
+        # sooner). A round still above the tolerance predicts the next one, x4 at least.
+        todo = np.flatnonzero(~gather_over & np.any(ed > 0, axis=1) & (samples < max_samples))
+        rounds = 0
+        while len(todo):
+            # aim at PROBE_MARGIN x the tolerance, so that the round kept seldom fails it (a failed
+            # round replaced by the next would bias the points whose samples came out low)
+            allowed = np.square(PROBE_MARGIN * tolerance * (h_gather[todo] + hd[todo])) - var_gather[todo]
+            ratio = np.divide(np.square(ed[todo]), allowed, out=np.full(allowed.shape, np.inf), where=allowed > 0)
+            grow = np.maximum(np.max(ratio, axis=1), 1.0 if rounds == 0 else 4.0)
+            steps = np.ceil(np.minimum(np.log(grow) / np.log(4.0), 16.0) - 1e-9)
+            new = np.minimum(samples[todo] * 4.0 ** steps, max_samples).astype(np.int64)
+            keep = (new > samples[todo]) | (rounds == 0)
+            todo, new = todo[keep], new[keep]
+            if not len(todo):
+                break
+            rounds += 1
+            round_seed = (seed + 0x632BE5AB * rounds) % (1 << 32)
+            for count in np.unique(new):          # one launch per count (powers of 4), over all its points
+                idx = todo[new == count]
+                hd[idx], ed[idx], _ = direct_irradiance(scene, tri_pts[idx], normals[idx], [c[idx] for c in curve],
+                                                        samples=int(count), seed=round_seed, keys=keys[idx],
+                                                        with_error=True)
+            samples[todo] = new
+            todo = todo[above(todo)]
+        h = h_gather + hd
+        err = np.sqrt(var_gather + ed * ed)
+        over = np.flatnonzero(np.any(err > tolerance * h, axis=1))
+        if len(over):
+            capped = over[samples[over] >= max_samples]
+            noisy = np.setdiff1d(over, capped)
+            shown = ", ".join(map(str, over[:10])) + (f" and {len(over) - 10} more" if len(over) > 10 else "")
+            why = []
+            if len(capped):
+                why.append(f"{len(capped)} reached max_samples={max_samples} direct-light samples")
+            if len(noisy):
+                why.append(f"{len(noisy)} have more gather noise than that with rays={rays} (give more rays)")
+            warnings.warn(f"{len(over)} of {n_pts} probes stay above the relative standard error tolerance "
+                          f"{tolerance:g} (probes {shown}): {'; '.join(why)}; their error is reported, "
+                          "not hidden", stacklevel=3)
+        return h, err
 
     def require_scene(self):
         """The attached mirad Scene; SolutionMismatch with the fix if none is attached."""

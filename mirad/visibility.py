@@ -384,19 +384,26 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
 # ------------------------------------------------------------------------------------------
 
 def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geometry,
-                     radiosity: np.ndarray, *, rays: int, seed: int, progress=None) -> np.ndarray:
+                     radiosity: np.ndarray, *, rays: int, seed: int, progress=None, with_error: bool = False):
     """Irradiance (P, C), W/m^2, at points (P, 3) with normals (P, 3) from every leaf.
 
     H(x) = sum_l B_l * F(dA_x -> leaf l) * v(x, l), with Lambert's analytic form factor
     and v the fraction of ``rays`` stratified shadow rays from x to leaf l that arrive.
     ``geo`` holds the leaves only; ``radiosity`` is (L, C). ``progress``, if given, is called
     with the number of points finished after every launch (it does not change the result).
+
+    With ``with_error``, returns (H, standard error of H (P, C), W/m^2): the visibility noise
+    sqrt(sum_l (B_l F_l)^2 v_l (1 - v_l) / (rays - 1)), the binomial variance of each leaf's
+    visible fraction estimated without bias from its ``rays`` rays (an upper bound for the
+    stratified rays traced); zero where no leaf is partly visible, and zero when ``rays`` is 1
+    (one ray cannot tell its own noise). H is bitwise the same either way.
     """
     n_pts, n_leaf = len(points), geo.size
     channels = radiosity.shape[1]
     b_dr = [to_float(radiosity[:, c]) for c in range(channels)]
     pts_per_launch = max(1, MAX_LANES // max(1, n_leaf * rays))
     out = np.zeros((n_pts, channels))
+    err = np.zeros((n_pts, channels)) if with_error else None
     for start in range(0, n_pts, pts_per_launch):
         stop = min(n_pts, start + pts_per_launch)
         m = stop - start
@@ -426,6 +433,18 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         for c in range(channels):
             h = dr.block_sum(weight * dr.gather(mi.Float, b_dr[c], leaf), n_leaf * rays)
             out[start:stop, c] = h.numpy()
+        if with_error and rays > 1:
+            # per (point, leaf) pair: visible fraction v and the form factor g of its first ray
+            v = dr.block_sum(dr.select(active & ~blocked, 1.0, 0.0), rays) * (1.0 / rays)
+            first = dr.arange(mi.UInt32, m * n_leaf) * rays
+            g_pair = dr.gather(mi.Float, g, first)
+            spread = g_pair * g_pair * v * (1.0 - v) * (1.0 / (rays - 1))
+            dr.eval(spread)                                   # one more launch of the rays, not one per channel
+            leaf_pair = dr.arange(mi.UInt32, m * n_leaf) % n_leaf
+            for c in range(channels):
+                b = dr.gather(mi.Float, b_dr[c], leaf_pair)
+                var = dr.block_sum(spread * b * b, n_leaf)
+                err[start:stop, c] = np.sqrt(np.maximum(np.asarray(var.numpy(), np.float64), 0.0))
         if progress is not None:
             progress(m)
-    return out
+    return (out, err) if with_error else out
