@@ -1,8 +1,9 @@
 """Files from a solution: PLY meshes, per-triangle, per-organ and per-shape tables, EXR images and lightmaps.
 
 Units: radiosity B and irradiance H in W/m^2 per channel, area in m^2, absorbed power in W.
-Absorbed power of a triangle is (1 - rho) * H * A per side, front plus back (two-sided BSDFs):
-the light a leaf of a plant model absorbs. Organs (``organ_table``) are shapes, connected pieces
+Absorbed power of a triangle is (1 - rho - tau) * H * A per side, front plus back (two-sided
+BSDFs), with tau the diffuse transmittance of a translucent leaf's side (zero elsewhere): the light
+a leaf of a plant model absorbs, neither reflected nor transmitted. Organs (``organ_table``) are shapes, connected pieces
 of a mesh or face groups of its file (``mirad.organs``). Every file is written atomically.
 """
 
@@ -20,7 +21,7 @@ from .errors import OutputError, SettingsError
 from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_exr
 from .organs import ORGAN_KINDS, triangle_components, triangle_groups
 
-__all__ = ["write_ply", "refined_mesh", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
+__all__ = ["write_ply", "refined_mesh", "absorbed_power", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
            "organ_table", "write_organ_table", "check_organ_options", "ORGAN_KINDS",
            "bake_lightmaps", "write_lightmaps", "exr_bytes", "png_bytes", "read_exr", "read_points",
            "write_probe_table", "lightmap_names", "TABLE_SUFFIXES", "PROBE_COLUMNS", "PLY_MESHES"]
@@ -111,22 +112,35 @@ def _vertex_mean(solution, per_triangle: np.ndarray) -> np.ndarray:
 # Tables
 # ------------------------------------------------------------------------------------------
 
+def absorbed_power(solution, irradiance: np.ndarray, back_irradiance: np.ndarray) -> np.ndarray:
+    """(T, C) float, W: power absorbed by each input triangle, front plus back,
+    (1 - rho - tau) H A per side, from its irradiance (T, C) and back irradiance (T, C), W/m^2.
+
+    rho is the side's reflectance and tau its diffuse transmittance (a translucent leaf's; zero on
+    opaque surfaces, which absorb (1 - rho) H A). The one definition every table uses.
+    """
+    area = solution.triangle_area[:, None]
+    front = 1 - solution.triangle_reflectance - solution.triangle_transmittance   # x - 0 is x: opaque
+    back = 1 - solution.back_reflectance - solution.back_transmittance            # scenes bitwise as before
+    return (front * irradiance + back * back_irradiance) * area
+
+
 def triangle_table(solution) -> dict:
     """Per input triangle: dict of arrays, T rows each.
 
     ``shape`` (T,) int index into ``shape_ids``; ``shape_id`` (T,) str; ``triangle`` (T,) int
     scene-wide index (shapes in order); ``area`` (T,) m^2; ``radiosity``, ``irradiance`` (T, C) W/m^2 (front side);
     ``back_radiosity``, ``back_irradiance`` (T, C) W/m^2 (zero where one-sided);
-    ``absorbed`` (T, C) W = (1 - rho) H A, front plus back; ``error`` (T, C) W/m^2, the
+    ``absorbed`` (T, C) W = (1 - rho - tau) H A per side, front plus back, tau the side's diffuse
+    transmittance (``Solution.triangle_transmittance``, ``back_transmittance``: translucent leaves;
+    zero elsewhere, so opaque surfaces absorb (1 - rho) H A); ``error`` (T, C) W/m^2, the
     estimated error of ``radiosity`` (the error map); ``triangle_in_shape`` (T,) int, the
     triangle's index within its shape (the shape's own face order; last, so earlier columns keep
     their place).
     """
     area = solution.triangle_area
-    rho = solution.triangle_reflectance
-    h = solution.triangle_irradiance
-    h_back, rho_back = solution.back_irradiance, solution.back_reflectance
-    absorbed = ((1 - rho) * h + (1 - rho_back) * h_back) * area[:, None]
+    h, h_back = solution.triangle_irradiance, solution.back_irradiance
+    absorbed = absorbed_power(solution, h, h_back)
     shape = np.asarray(solution.triangle_shape, dtype=np.int64)
     return {
         "shape": shape,
@@ -147,7 +161,8 @@ def shape_summary(solution) -> dict:
     """Per shape: dict of arrays, S rows each (S = len(shape_ids)).
 
     ``shape_id`` (S,) str; ``triangles`` (S,) int; ``area`` (S,) m^2; ``mean_radiosity`` (S, C)
-    W/m^2, area-weighted over the front side; ``absorbed`` (S, C) W, total over front and back.
+    W/m^2, area-weighted over the front side; ``absorbed`` (S, C) W, total over front and back
+    of (1 - rho - tau) H A (``absorbed_power``), the sum of ``triangle_table``'s column.
     """
     table = triangle_table(solution)
     n = len(solution.shape_ids)

@@ -102,6 +102,10 @@ class Solution:
         }
         if scene.vertex_uv is not None:
             arrays["vertex_uv"] = scene.vertex_uv
+        if scene.diffuse_transmission:      # translucent leaves only: other solutions keep their arrays
+            leaf = scene.tri_leaf[:, None]
+            arrays["triangle_tau"] = np.where(leaf, scene.tri_transmittance, 0.0)
+            arrays["back_tau"] = np.where(leaf, scene.back_transmittance, 0.0)
         if detail_leaves is not None and len(detail_leaves):
             arrays["detail_leaf"] = np.asarray(detail_leaves, np.int32)
             arrays["leaf_detail"] = widen(leaf_detail, axis=3)
@@ -269,6 +273,26 @@ class Solution:
         """(T, C) float: reflectance of the back side (zero where one-sided)."""
         back = self._arrays.get("back_rho")
         return np.zeros_like(self.triangle_reflectance) if back is None else back
+
+    @property
+    def triangle_transmittance(self) -> np.ndarray:
+        """(T, C) float: diffuse transmittance tau of the front side of each triangle, the fraction of
+        its irradiance a translucent leaf (``scene.tri_leaf``) hands to the other side; zero on every
+        other surface (mirad's model absorbs what glass or a mask would let through)."""
+        return self._transmittance("triangle_tau", "tri_transmittance")
+
+    @property
+    def back_transmittance(self) -> np.ndarray:
+        """(T, C) float: diffuse transmittance of the back side (zero where not a translucent leaf)."""
+        return self._transmittance("back_tau", "back_transmittance")
+
+    def _transmittance(self, key: str, scene_key: str) -> np.ndarray:
+        if key in self._arrays:
+            return self._arrays[key]
+        scene = self.scene           # a solution saved before it kept tau: its scene, once attached
+        if scene is not None and scene.diffuse_transmission:
+            return np.where(scene.tri_leaf[:, None], getattr(scene, scene_key), 0.0)
+        return np.zeros_like(self.triangle_reflectance)
 
     @property
     def triangle_emission(self) -> np.ndarray:
