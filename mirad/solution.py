@@ -460,8 +460,11 @@ class Solution:
         center, axis, radius = self.triangle_curve
         geo = Geometry.upload(self.leaf_vertices, self.leaf_normal, center[tri], axis[tri], radius[tri],
                               scene.diagonal)
-        h, err = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays, seed=seed,
-                                  progress=progress, with_error=True)
+        # the gather's noise costs one more launch of its rays: only when asked for or needed (the
+        # direct light's samples are raised against the tolerance left beside it)
+        gathered = gather_at_points(scene.mi_scene, points, normals, geo, self.leaf_radiosity, rays=rays,
+                                    seed=seed, progress=progress, with_error=with_error or bool(scene.light_emitters))
+        h, err = gathered if isinstance(gathered, tuple) else (gathered, None)
         if scene.light_emitters:
             h, err = self._probe_direct(scene, points, normals, h, err, tolerance=tolerance,
                                         max_samples=max_samples, seed=seed, rays=rays)
