@@ -735,7 +735,8 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
     # is deep, so the pass budget is max_refine_passes beyond that depth
     max_passes = settings.max_refine_passes + tree_depth(nodes)
     bar = tqdm(total=max_passes + 1, desc="mirad", unit="pass", disable=settings.quiet)
-    # open the volume clusters that hold emitters before the first solve (their error is inf)
+    # open the volume clusters that hold emitters near their receivers before the first
+    # solve (their error is inf there, see refine.power_errors)
     empty = SourceState(np.zeros(len(nodes)), np.zeros(len(nodes)), np.zeros(len(nodes)))
     _, capped = refine(state, empty, np.finfo(float).max, max_links)
     direct(state, state.nodes.leaves, min(settings.samples_per_link, MAX_DIRECT_SAMPLES))

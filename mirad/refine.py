@@ -28,7 +28,9 @@ over the source's leaves (the link carries the source's mean; the kernel's relat
 across the source, at most its size over its distance, turns that into a transfer error). A volume-cluster source has no exact
 transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
 the brightest leaf below, Smits-Arvo-Greenberg), so it opens wherever it matters; a
-cluster holding an emitter always opens.
+cluster holding an emitter always opens for receivers within its bounding sphere's
+diameter (there the sphere bounds nothing useful) and is bounded like the others farther
+away.
 
 Refinement (``choose``) splits a link whose error exceeds eps: the source when it is a
 volume cluster or its term dominates; otherwise the larger end that can split; a link on a
@@ -242,8 +244,12 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
         bound = sphere_form_factor_bound(nodes.center[rv], nodes.radius[rv], nodes.center[sv], nodes.radius[sv])
         receiver[vol] = scale[vol] * state.b_max_below[sv] * bound
         source[vol] = 0.0
-        lit = vol[nodes.emits[sv]]
-        receiver[lit] = np.inf
+        # a cluster holding an emitter opens for the receivers near it (within its bounding
+        # sphere's diameter, where the sphere says little about the light), and elsewhere is
+        # bounded like any other cluster: a thousand small lamps then reach a far wall as
+        # a few clusters, not a thousand links
+        near = distance_to_source(nodes, rv, sv) <= 2.0 * nodes.radius[sv]
+        receiver[vol[nodes.emits[sv] & near]] = np.inf
     return receiver, source
 
 
