@@ -18,6 +18,8 @@ the ``radiosity`` plugin (``integrator.py``) extends it with solving on first us
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from .arrays import LEAF_CORNER_UV, group_mean, scene_diagonal, to_float, to_uint
@@ -34,6 +36,8 @@ LOCATE_OFFSET = 1e-4
 NO_DETAIL = 0xFFFFFFFF
 #: Extra search depth below curved surfaces, relative to their radius (tessellation sagitta).
 CURVED_DEPTH = 0.05
+#: Direct-light samples of sky and point emitters per final-gather pixel point.
+PIXEL_DIRECT_SAMPLES = 64
 
 
 def _leaf_mesh(name: str, verts: np.ndarray):
@@ -262,7 +266,13 @@ class Shading:
         if len(idx):
             with tqdm(total=len(idx), desc="final gather", unit="point", unit_scale=True, disable=quiet,
                       leave=False) as bar:
-                h = self.solution.irradiance_at(pts[idx], nrm[idx], rays=rays, seed=seed, progress=bar.update)
+                # a pixel's gather is one sample of an image that averages many: the direct light of
+                # sky and point emitters keeps a fixed budget per point (a probe's error control
+                # would take up to 65,536 samples at each)
+                with warnings.catch_warnings():
+                    warnings.filterwarnings("ignore", message=".*probes stay above the relative standard error tolerance")
+                    h = self.solution.irradiance_at(pts[idx], nrm[idx], rays=rays, seed=seed, progress=bar.update,
+                                                    max_samples=PIXEL_DIRECT_SAMPLES)
             if h.shape[1] == 1:
                 h = np.repeat(h, 3, axis=1)
             result[idx] = (self.leaf_emission[lf[idx]] + self.leaf_rho[lf[idx]] * h) / np.pi
