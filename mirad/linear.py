@@ -66,8 +66,8 @@ def _gmres(system: LeafSystem, x0: np.ndarray, tol: float, max_iterations: int):
     total = 0
     for c in range(channels):
         rho = system.rho[:, c]
-        rhs = system.emission[:, c]
-        if not np.any(rhs) and not np.any(x0[:, c]):
+        emission = system.emission[:, c]
+        if not np.any(emission) and not np.any(x0[:, c]):
             out[:, c] = 0.0
             continue
 
@@ -75,16 +75,24 @@ def _gmres(system: LeafSystem, x0: np.ndarray, tol: float, max_iterations: int):
             v = np.ravel(v)
             return v - rho * system.gather(v)
 
+        # solved for the reflected part R = B - E, (I - rho K) R = rho K E: its tolerance is
+        # then relative to the first bounce, not to the emission (a light a millionth of the
+        # room's area, a million times brighter, once made the warm start "converged" with
+        # no reflected light at all)
+        first = rho * system.gather(emission)
+        if not np.any(first):
+            out[:, c] = emission
+            continue
         op = spla.LinearOperator((n, n), matvec=matvec, dtype=np.float64)
         count = [0]
 
         def callback(_, count=count):
             count[0] += 1
 
-        sol, info = spla.gmres(op, rhs, x0=x0[:, c], rtol=tol, atol=0.0, restart=min(60, n),
+        sol, info = spla.gmres(op, first, x0=x0[:, c] - emission, rtol=tol, atol=0.0, restart=min(60, n),
                                maxiter=max(1, max_iterations // 60 + 1), callback=callback,
                                callback_type="pr_norm")
-        out[:, c] = sol
+        out[:, c] = emission + sol
         total += count[0]
     return out, total, system.residual(out)
 

@@ -216,3 +216,24 @@ def test_a_thousand_small_lights_open_only_near_their_receivers(tmp_path):
     # every watt ends on a front side; the black ceiling's irradiance is not in the error
     # model (its radiosity is zero whatever it receives), hence the wide margin
     assert absorbed == pytest.approx(emitted, rel=0.1)
+
+
+def test_a_light_a_millionth_of_the_room_lights_it(tmp_path):
+    """The solve's tolerance is relative to the reflected light, not to the emission: with
+    the emission's norm, a light of 1e-6 of the room's area (and 1e6 times its radiance)
+    made the warm start look converged with no reflected light at all, the estimate read
+    1e297 and refinement ran to 659 k links (16 s) at tolerance 0.03."""
+    from mirad.reference import triangle_reference
+
+    sys.path.insert(0, str(SCENES / "hard-cases"))
+    import cases
+
+    scene = mirad.load_scene(cases.tiny_light_room(tmp_path))
+    sol = mirad.solve(scene, tolerance=0.03, **HIER)
+    assert sol.stats["estimated_error"] <= 0.03 and sol.stats["links"] < 10_000
+    ref = triangle_reference(scene, samples_per_triangle=1 << 12, seed=8)
+    for sid in ("floor", "ceiling", "wall-x0", "wall-y1"):
+        mask = scene.tri_shape == scene.shape_index(sid)
+        b = area_mean(sol.triangle_radiosity[mask], scene.tri_area[mask])[0]
+        r = area_mean(ref.radiosity[mask], scene.tri_area[mask])[0]
+        assert b == pytest.approx(r, rel=0.03), sid
