@@ -338,6 +338,9 @@ def solve(state: State, previous: Solved | None) -> Solved:
         visible = push.T.tocsr() @ (area * (1.0 - state.buried[leaves]))
         scale = np.where(visible > 1e-12 * np.maximum(nodes.area, 1e-300), 1.0 / np.maximum(visible, 1e-300), 0.0)
         pull = (sp.diags(scale) @ push.T.tocsr() @ sp.diags(area)).tocsr()
+        # and receives light there only: a node's irradiance (its mean over its whole area,
+        # buried points unlit) lands on its visible leaves, times its area over the visible
+        push = (sp.diags(1.0 - state.buried[leaves]) @ push @ sp.diags(scale * nodes.area)).tocsr()
     rho = state.patch_rho[nodes.patch[leaves]]
     emission = state.patch_emission[nodes.patch[leaves]] + rho * state.direct[leaves]
     system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, emission)
@@ -589,7 +592,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     keep = np.flatnonzero(nodes.kind[links.recv] != FACE)
     own = sp.csr_matrix((links.ff[keep].astype(np.float64), (links.recv[keep], links.src[keep])), shape=(n, n))
     patch_of = nodes.patch[leaves]
-    to_patch = sp.csr_matrix((np.ones(len(leaves)), (np.arange(len(leaves)), patch_of)), shape=(len(leaves), n_patch))
+    # (a patch's gathered mean lands on its visible leaves, as in ``solve``)
+    seen = 1.0 - state.buried[leaves]
+    visible = np.bincount(patch_of, weights=nodes.area[leaves] * seen, minlength=n_patch)
+    spread = np.where(visible > 1e-12 * nodes.area[:n_patch], nodes.area[:n_patch] / np.maximum(visible, 1e-300), 0.0)
+    to_patch = sp.csr_matrix((seen * spread[patch_of], (np.arange(len(leaves)), patch_of)), shape=(len(leaves), n_patch))
     system = solved.system
     final = LeafSystem(sp.hstack([system.push, to_patch]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
                        system.rho, system.emission)
