@@ -58,10 +58,39 @@ class ClusterTree:
         return len(self.lo)
 
 
-def build_tree(centroid: np.ndarray, area: np.ndarray) -> ClusterTree:
+#: Split positions along a segment's longest extent are compared on a grid of this many steps
+#: over that extent (``build_tree(bins=...)``, the hierarchical core's trees).
+SPLIT_BINS = 1024
+
+
+def split_keys(c: np.ndarray, starts: np.ndarray, seg_of: np.ndarray, bins: int | None = None) -> np.ndarray:
+    """Sort keys of points c (Q, 3) grouped in segments (``starts`` of each, ``seg_of`` (Q,)):
+    their coordinate along their segment's longest extent.
+
+    With ``bins``, extents and coordinates are compared on a grid of ``bins`` steps over the
+    segment's largest extent, from the segment's lower corner: positions equal up to rounding
+    (a grid's rows after float32 rounding of scaled or moved vertices) tie, and ties keep the
+    order the points came in, so that the same geometry in other units or at another place
+    gives the same tree. Without, the raw longest axis and coordinate (ties broken by rounding).
+    """
+    box_lo = np.minimum.reduceat(c, starts, axis=0)
+    box_hi = np.maximum.reduceat(c, starts, axis=0)
+    ext = box_hi - box_lo
+    if bins is None:
+        axis = np.argmax(ext, axis=1)
+        return c[np.arange(len(c)), axis[seg_of]]
+    top = ext.max(axis=1)
+    top = np.where(top > 0, top, 1.0)
+    axis = np.argmax(np.round(ext / top[:, None] * bins), axis=1)          # first of (nearly) equal extents
+    a = axis[seg_of]
+    return np.round((c[np.arange(len(c)), a] - box_lo[seg_of, a]) / top[seg_of] * bins)
+
+
+def build_tree(centroid: np.ndarray, area: np.ndarray, bins: int | None = None) -> ClusterTree:
     """BVH over patches (centroids (P, 3), areas (P,)): median split on the longest axis.
 
     Built one level at a time over all segments at once (numpy); P - 1 clusters for P >= 2.
+    ``bins``: compare positions on a grid relative to each segment (``split_keys``).
     """
     p = len(centroid)
     order = np.arange(p)
@@ -77,11 +106,8 @@ def build_tree(centroid: np.ndarray, area: np.ndarray) -> ClusterTree:
         idx = _ranges(seg_lo, seg_hi)
         c = centroid[order[idx]]
         starts = np.concatenate([[0], np.cumsum(seg_hi - seg_lo)[:-1]])
-        box_lo = np.minimum.reduceat(c, starts, axis=0)
-        box_hi = np.maximum.reduceat(c, starts, axis=0)
-        axis = np.argmax(box_hi - box_lo, axis=1)
-        key = c[np.arange(len(idx)), axis[seg_of]]
-        perm = np.lexsort((key, seg_of))
+        key = split_keys(c, starts, seg_of, bins)
+        perm = np.lexsort((np.arange(len(idx)), key, seg_of))
         order[idx] = order[idx[perm]]
         # --- split at the middle; children of size 1 are patches, larger ones clusters ----
         mid = (seg_lo + seg_hi) // 2

@@ -438,12 +438,16 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
     x0 = points.mean(axis=1)
     d = points - x0[:, None]
     d = d - np.einsum("mkc,mc->mk", d, normal)[..., None] * normal[:, None]
-    design = np.concatenate([np.ones(d.shape[:2] + (1,)), d], axis=2)        # (U, K, 4), rank <= 3
+    # offsets in units of the receiver's radius: the design is dimensionless, so the fit
+    # (and its pseudo-inverse's rounding) is the same for the same geometry in any units
+    size = nodes.radius[ids]
+    size = np.where(size > 0, size, 1.0)
+    design = np.concatenate([np.ones(d.shape[:2] + (1,)), d / size[:, None, None]], axis=2)   # (U, K, 4), rank <= 3
     fit = np.linalg.pinv(design)                                              # (U, 4, K)
     coef = np.einsum("mpk,mk->mp", fit[inverse], values)
     resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
     dof = max(values.shape[1] - 3, 1)
-    return x0[inverse], coef[:, 0], coef[:, 1:], np.sqrt((resid * resid).sum(axis=1) / dof)
+    return x0[inverse], coef[:, 0], coef[:, 1:] / size[inverse, None], np.sqrt((resid * resid).sum(axis=1) / dof)
 
 
 def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray, gv: np.ndarray,

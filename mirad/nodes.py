@@ -31,7 +31,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from .arrays import group_mean, group_sum
-from .cluster import build_tree
+from .cluster import SPLIT_BINS, build_tree, split_keys
 
 TRIANGLE, FACE, VOLUME = 0, 1, 2
 #: Receiver quadrature points per node (Dunavant's degree-5 rule on triangles).
@@ -40,8 +40,9 @@ RECEIVER_POINTS = 7
 SOURCE_POINTS = 16
 #: Longest-edge^2 / area above which a triangle splits in two across its longest edge.
 SLIVER_RATIO = 8.0
-#: Two triangles share a plane when their normals agree to this (cosine 1 - 1e-6 ~ 0.08
-#: degrees) and their plane offsets to this fraction of the scene diagonal.
+#: Two triangles share a plane when their normals' components agree to this (~0.06 degrees)
+#: and their centroids' heights along their mean normal to this fraction of the scene
+#: diagonal, up to chaining (``planar_groups``).
 PLANE_NORMAL_TOL = 1e-3
 PLANE_OFFSET_TOL = 1e-5
 
@@ -166,7 +167,7 @@ def build_nodes(surf: Surface) -> tuple[Nodes, np.ndarray, int]:
     # --- volume tree over the planar groups ----------------------------------------------
     g_area = group_sum(group, area, n_groups)
     g_cent = group_mean(group, surf.verts.mean(axis=1), n_groups, weights=area)
-    vtree = build_tree(g_cent, g_area) if n_groups > 1 else None
+    vtree = build_tree(g_cent, g_area, SPLIT_BINS) if n_groups > 1 else None
     g_rank = np.empty(n_groups, np.int64)
     g_rank[vtree.order if vtree is not None else np.arange(n_groups)] = np.arange(n_groups)
     # --- patches sorted by group in the volume tree's order, then face trees per group ----
@@ -221,16 +222,58 @@ def build_nodes(surf: Surface) -> tuple[Nodes, np.ndarray, int]:
 def planar_groups(surf: Surface) -> np.ndarray:
     """(P,) group index: patches of one shape side whose planes agree within tolerance.
 
-    Curved patches (true-surface radius > 0) each form their own group.
+    Normals are grouped component by component, then the patches of a normal group by
+    their centroids' heights along the group's mean normal, each by chaining sorted values
+    (a gap wider than the tolerance starts a new group: ``_chains``). Values equal up to
+    rounding, or scattered within the tolerance (a jittered floor), never straddle a bin
+    edge, and heights are differences along one normal, so the groups are the same for
+    the scene scaled or moved. Curved patches (true-surface radius > 0) each form their
+    own group.
     """
     n = surf.normal
-    offset = np.einsum("pc,pc->p", n, surf.verts[:, 0]) / surf.diagonal
-    q = np.concatenate([np.round(n / PLANE_NORMAL_TOL), np.round(offset / PLANE_OFFSET_TOL)[:, None]], 1)
+    p = len(n)
     curved = surf.curve[2] > 0
-    key = np.concatenate([surf.group_key[:, None].astype(np.float64), q,
-                          np.where(curved, np.arange(len(n)), -1)[:, None]], 1)
-    _, group = np.unique(key, axis=0, return_inverse=True)
-    return group.ravel().astype(np.int64)
+    label = np.where(curved, np.arange(p) + 1, 0).astype(np.int64)
+    label = np.unique(np.stack([surf.group_key.astype(np.int64), label], 1), axis=0, return_inverse=True)[1].ravel()
+    for c in range(3):
+        label = _chains(label, n[:, c], PLANE_NORMAL_TOL)
+    # heights of the centroids along each normal group's mean normal (area-weighted)
+    area = _tri_area(surf.verts)
+    count = int(label.max()) + 1 if p else 0
+    mean = np.zeros((count, 3))
+    np.add.at(mean, label, n * area[:, None])
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
+    height = np.einsum("pc,pc->p", mean[label], surf.verts.mean(axis=1))
+    label = _chains(label, height, PLANE_OFFSET_TOL * surf.diagonal)
+    return label.astype(np.int64)
+
+
+#: A chain of values wider than this many tolerances is split on a grid of the tolerance
+#: from its lowest value instead (a continuum, such as a finely tessellated curve, is not one plane).
+CHAIN_SPREAD = 16
+
+
+def _chains(label: np.ndarray, x: np.ndarray, tol: float) -> np.ndarray:
+    """Refine groups ``label`` (P,) by the values x (P,): inside each group, sorted values
+    whose gaps are at most ``tol`` share a chain; a chain wider than ``CHAIN_SPREAD`` tol is
+    cut on a grid of ``tol`` from its lowest value. Returns labels 0 .. G-1, numbered by
+    (group, value): the same for values moved or rounded by much less than ``tol``."""
+    if not len(x):
+        return label
+    order = np.lexsort((np.arange(len(x)), x, label))
+    xs, ls = x[order], label[order]
+    new = np.ones(len(x), bool)
+    new[1:] = (ls[1:] != ls[:-1]) | (np.diff(xs) > tol)
+    chain = np.cumsum(new) - 1
+    starts = np.flatnonzero(new)
+    lo = xs[starts]
+    hi = np.maximum.reduceat(xs, starts)
+    wide = (hi - lo) > CHAIN_SPREAD * tol
+    sub = np.where(wide[chain], np.floor((xs - lo[chain]) / tol), 0.0)
+    new[1:] |= sub[1:] != sub[:-1]
+    out = np.empty(len(x), np.int64)
+    out[order] = np.cumsum(new) - 1
+    return out
 
 
 def _segmented_median_tree(cent, order, seg_lo, seg_hi, p):
@@ -251,9 +294,8 @@ def _segmented_median_tree(cent, order, seg_lo, seg_hi, p):
         idx = np.repeat(s_lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) + np.arange(counts.sum())
         c = cent[order[idx]]
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        axis = np.argmax(np.maximum.reduceat(c, starts, axis=0) - np.minimum.reduceat(c, starts, axis=0), axis=1)
-        key = c[np.arange(len(idx)), axis[seg_of]]
-        perm = np.lexsort((key, seg_of))
+        key = split_keys(c, starts, seg_of, SPLIT_BINS)
+        perm = np.lexsort((np.arange(len(idx)), key, seg_of))
         order[idx] = order[idx[perm]]
         mid = (s_lo + s_hi) // 2
         nxt_lo, nxt_hi, nxt_node = [], [], []
