@@ -8,7 +8,7 @@ Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
                 evaluated in one Dr.Jit wave each (transfer.py, "transfer")
     direct      point/spot/directional/environment light on each leaf (emitters.py)
     solve       B = E + rho (push F pull) B on the leaves (linear.py), warm-started
-    estimate    summed link power errors over A_total * mean(B - E)
+    estimate    summed link power errors over A_total * mean(H) (refine.ERRORS_OF)
     gather      after the last solve: each face-cluster link descends its receiver's tree
                 until the light it brings is linear and unshadowed over a node (then the
                 patches below take the fit) or reaches the input patches (which evaluate
@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
-from .refine import (EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
+from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, link_values, power_errors, refinement_threshold)
 from .scene import Scene
 from .settings import Settings
@@ -280,8 +280,8 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
 
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     """(L,) expected absolute error of each leaf's direct light as power, W."""
-    rho = state.patch_rho[state.nodes.patch[leaves]]
-    return EXPECTED_ABS * state.nodes.area[leaves] * (rho * state.direct_error[leaves]).max(axis=1)
+    weight = state.patch_rho[state.nodes.patch[leaves]] if ERRORS_OF == "radiosity" else 1.0
+    return EXPECTED_ABS * state.nodes.area[leaves] * (weight * state.direct_error[leaves]).max(axis=1)
 
 
 def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
@@ -613,7 +613,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     h_leaf = final.gather(np.maximum(b, 0.0))
     rho = state.patch_rho[patch_of].max(axis=1)
     # a patch's noise, spread over its leaves by area
-    noise = EXPECTED_ABS * rho * nodes.area[leaves] * np.sqrt(var[patch_of])
+    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[leaves] * np.sqrt(var[patch_of])
     state.timing["transfer"] += inner
     state.timing["gather"] += time.perf_counter() - t - inner - solve_time
     return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated)
@@ -648,7 +648,10 @@ def source_state(state: State, solved: Solved) -> SourceState:
         below[filled] = np.maximum.reduceat(b_leaf.max(axis=1)[pull.indices], pull.indptr[filled])
     leaf_area = state.nodes.area[solved.leaves]
     rho_mean = float((leaf_area * solved.system.rho.max(axis=1)).sum() / max(leaf_area.sum(), 1e-300))
-    source = SourceState(b_node.max(axis=1), below, dev, rho_mean * amplification(state, solved))
+    # an error in what a face cluster sends reaches the output after interreflection (and,
+    # for the reflected radiosity, one more reflection)
+    propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * amplification(state, solved)
+    source = SourceState(b_node.max(axis=1), below, dev, propagation)
     # face clusters' mean errors are sampling errors of unbiased estimates: summed per
     # receiver (its points are shared by its links), in quadrature over receivers
     raw = face_mean_errors(state.nodes, links, source, weighted=False)
@@ -679,6 +682,18 @@ def reflected_mean(state: State, solved: Solved) -> float:
     return mean if mean > 0 else 1e-300
 
 
+def reference_mean(state: State, solved: Solved) -> float:
+    """The mean the estimate is relative to (W/m^2, area-weighted over the leaves, mean over
+    channels): the irradiance H, or the reflected radiosity B - E (refine.ERRORS_OF)."""
+    if ERRORS_OF == "radiosity":
+        return reflected_mean(state, solved)
+    leaves = solved.leaves
+    h = solved.system.gather(solved.b_leaf) + state.direct[leaves]
+    area = state.nodes.area[leaves]
+    mean = float((area[:, None] * np.maximum(h, 0.0)).sum() / max(area.sum() * h.shape[1], 1e-300))
+    return mean if mean > 0 else 1e-300
+
+
 @dataclass
 class Estimate:
     """Link errors (W) and the relative estimate."""
@@ -687,7 +702,8 @@ class Estimate:
     source: np.ndarray
     direct: np.ndarray     # (L,) per leaf
     relative: float
-    reflected_mean: float
+    reference_mean: float  # W/m^2: the mean the estimate is relative to (``reference_mean``)
+    reflected_mean: float  # W/m^2: mean B - E
 
     @property
     def link_errors(self) -> np.ndarray:
@@ -695,14 +711,15 @@ class Estimate:
 
 
 def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
-    """Stage estimate: summed link and direct-light power errors over A_total * mean(B - E)."""
+    """Stage estimate: summed link and direct-light power errors over A_total * mean(H) (``reference_mean``)."""
     t = time.perf_counter()
     receiver, src = power_errors(state.nodes, state.links, source)
     d = direct_power_errors(state, solved.leaves) if state.scene.light_emitters else np.zeros(len(solved.leaves))
-    mean = reflected_mean(state, solved)
+    mean = reference_mean(state, solved)
     total = float(np.sum(receiver + src)) + float(d.sum())
     state.timing["estimate"] += time.perf_counter() - t
-    return Estimate(receiver, src, d, total / max(state.total_area * mean, 1e-300), mean)
+    return Estimate(receiver, src, d, total / max(state.total_area * mean, 1e-300), mean,
+                    reflected_mean(state, solved))
 
 
 def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate:
@@ -716,7 +733,7 @@ def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate
     face = state.nodes.kind[state.links.recv] == FACE
     receiver = np.where(face, 0.0, est.receiver)
     total = float(receiver.sum() + est.source.sum() + est.direct.sum() + gathered.noise_power.sum())
-    return replace(est, receiver=receiver, relative=total / max(state.total_area * est.reflected_mean, 1e-300))
+    return replace(est, receiver=receiver, relative=total / max(state.total_area * est.reference_mean, 1e-300))
 
 
 # ------------------------------------------------------------------------------------------
@@ -764,7 +781,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
             bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
             if est.relative <= settings.tolerance or capped or passes >= max_passes:
                 break
-            budget = settings.tolerance * state.total_area * est.reflected_mean
+            budget = settings.tolerance * state.total_area * est.reference_mean
             eps = refinement_threshold(np.concatenate([est.link_errors, est.direct]), budget)
             leaves = state.nodes.leaves
             resampled = resample_direct(state, leaves, eps)
@@ -809,6 +826,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
     err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
         (est.direct + gathered.noise_power) / nodes.area[leaves]
+    if ERRORS_OF == "irradiance":      # (an irradiance error; the map is of the radiosity)
+        err_leaf = err_leaf * system.rho.max(axis=1)
     area_leaf = nodes.area[leaves]
     mean_b = float((area_leaf[:, None] * b_leaf).sum() / max(area_leaf.sum() * b_leaf.shape[1], 1e-300)) or 1e-300
     state.timing["total"] = time.perf_counter() - t_start

@@ -14,19 +14,22 @@ form-factor units, both from the receiver points of its wave (transfer.py):
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
   over the link's n rays (zero when all rays agree).
 
-As power (W), over the receiver's area A_r with the receiver's largest reflectance and
-the source's brightest channel (``power_errors``):
+As power (W): irradiance errors over the receiver's area A_r, with the source's brightest
+channel (``power_errors``; ERRORS_OF = "irradiance": what the receiver absorbs and what it
+reflects are both outputs, so a dark or black receiver's light counts as much as a white
+one's; with "radiosity" each term is also weighted by the receiver's reflectance rho_r):
 
-    receiver term  A_r rho_r B_s (p err_ff + sqrt(2/pi) vis_std)
-    source term    A_r rho_r F dev_s min(1, 2 R_s / d)
+    receiver term  A_r B_s (p err_ff + sqrt(2/pi) vis_std)
+    source term    A_r F dev_s min(1, 2 R_s / d)
 
-where p is 1 on triangles and, on face clusters, the share of an error in the cluster's
-mean that reaches the output (``SourceState.propagation``: it is reflected once more
-elsewhere, then amplified by interreflection; the face clusters' sampling errors add in
-quadrature over receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s|
+where p is 1 on triangles and, on face clusters, rho_r times the gain with which an error
+in the cluster's mean reaches the output (``SourceState.propagation``: the cluster's own
+triangles are gathered again, so the error travels only in the light the cluster sends,
+amplified by interreflection; the face clusters' sampling errors add in quadrature over
+receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s|
 over the source's leaves (the link carries the source's mean; the kernel's relative change
 across the source, at most its size over its distance, turns that into a transfer error). A volume-cluster source has no exact
-transfer: its term is A_r rho_r B_max,s F_bound (the bounding sphere's form factor and
+transfer: its term is A_r B_max,s F_bound (the bounding sphere's form factor and
 the brightest leaf below, Smits-Arvo-Greenberg), so it opens wherever it matters; a
 cluster holding an emitter always opens for receivers within its bounding sphere's
 diameter (there the sphere bounds nothing useful) and is bounded like the others farther
@@ -49,6 +52,9 @@ from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
 from .transfer import PointTransfers
 
+#: What the tolerance bounds: the error of the "irradiance" H (so of absorbed and reflected
+#: light alike) or of the reflected radiosity B - E only ("radiosity").
+ERRORS_OF = "irradiance"
 #: Most shadow rays per receiver point (a link traces at most K times this many).
 MAX_RAYS_PER_POINT = 16
 #: A degree-2 rule on the six outer points of Dunavant's 7-point rule (nodes.DUNAVANT7_BARY):
@@ -208,6 +214,14 @@ class SourceState:
                                                                                  self.mean_weight[par]]))
 
 
+def receiver_weight(nodes: Nodes, recv: np.ndarray) -> np.ndarray:
+    """(M,) what an error in a receiver's irradiance weighs in the estimate: 1 when the
+    tolerance is on irradiance (ERRORS_OF, the default: a dark surface's absorbed light and
+    a black one's irradiance are outputs too), the receiver's largest reflectance when it is
+    on reflected radiosity."""
+    return np.ones(len(recv)) if ERRORS_OF == "irradiance" else nodes.rho_max[recv].astype(np.float64)
+
+
 def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted: bool = True) -> np.ndarray:
     """(M,) W: the part of the receiver term that is the error of the receiver's mean
     (err_ff), as it reaches the output.
@@ -220,9 +234,10 @@ def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted
     each link's share is scaled by ``state.mean_weight`` of its receiver (e_r / sqrt(sum
     e_r^2), set by core.estimate), so that the shares sum to the quadrature total."""
     r, s = links.recv, links.src
-    e = nodes.area[r] * nodes.rho_max[r] * state.b_max[s] * links.err_ff
+    e = nodes.area[r] * state.b_max[s] * links.err_ff
     face = nodes.kind[r] == FACE
-    e = np.where(face, state.propagation * e, e)
+    # (a face cluster's mean error is sent on as radiosity: rho_r times it, amplified)
+    e = np.where(face, state.propagation * nodes.rho_max[r] * e, receiver_weight(nodes, r) * e)
     if weighted and state.mean_weight is not None:
         e = np.where(face, e * state.mean_weight[r], e)
     return e
@@ -231,7 +246,7 @@ def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted
 def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.ndarray, np.ndarray]:
     """(receiver term, source term) of every link, W (see module docstring)."""
     r, s = links.recv, links.src
-    scale = nodes.area[r] * nodes.rho_max[r]
+    scale = nodes.area[r] * receiver_weight(nodes, r)
     # a face cluster's own triangles get their light from the final gather (core.py): an
     # error in the cluster's mean reaches the output only once reflected again elsewhere
     receiver = scale * state.b_max[s] * EXPECTED_ABS * links.vis_std + face_mean_errors(nodes, links, state)
