@@ -39,7 +39,7 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
 from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
-from .arrays import RAY_OFFSET
+from .arrays import RAY_OFFSET, channel_max
 
 #: Most points per leaf for the direct light of point/sky emitters.
 MAX_DIRECT_SAMPLES = 1024
@@ -419,7 +419,7 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     w = nodes.recv_w[patch].astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
-    b = solved.b_node[src].max(axis=1)
+    b = channel_max(solved.b_node[src])
     vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
     var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
@@ -509,7 +509,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
     centroid = state.surface.verts.mean(axis=1)
     # every node's irradiance from its own links and its ancestors' (brightest channel)
-    b_src = solved.b_node.max(axis=1)
+    b_src = channel_max(solved.b_node)
     h_node = ancestor_matrix(nodes, np.arange(len(nodes))) @ (links.matrix(len(nodes)) @ b_src)
     on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
     # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
@@ -632,7 +632,7 @@ def source_state(state: State, solved: Solved) -> SourceState:
     pull = system.pull                      # CSR (N, L): a row per node, its leaves' shares
     n = len(state.nodes)
     rows = np.repeat(np.arange(n), np.diff(pull.indptr))
-    deviation = np.abs(b_leaf[pull.indices] - b_node[rows]).max(axis=1)
+    deviation = channel_max(np.abs(b_leaf[pull.indices] - b_node[rows]))
     measured = np.bincount(rows, weights=pull.data * deviation, minlength=n)
     links = state.links
     if SOURCE_DEVIATION == "measured":
@@ -645,13 +645,13 @@ def source_state(state: State, solved: Solved) -> SourceState:
     below = np.zeros(n)
     filled = np.flatnonzero(np.diff(pull.indptr) > 0)
     if len(filled):
-        below[filled] = np.maximum.reduceat(b_leaf.max(axis=1)[pull.indices], pull.indptr[filled])
+        below[filled] = np.maximum.reduceat(channel_max(b_leaf)[pull.indices], pull.indptr[filled])
     leaf_area = state.nodes.area[solved.leaves]
-    rho_mean = float((leaf_area * solved.system.rho.max(axis=1)).sum() / max(leaf_area.sum(), 1e-300))
+    rho_mean = float((leaf_area * channel_max(solved.system.rho)).sum() / max(leaf_area.sum(), 1e-300))
     # an error in what a face cluster sends reaches the output after interreflection (and,
     # for the reflected radiosity, one more reflection)
     propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * amplification(state, solved)
-    source = SourceState(b_node.max(axis=1), below, dev, propagation)
+    source = SourceState(channel_max(b_node), below, dev, propagation)
     # face clusters' mean errors are sampling errors of unbiased estimates: summed per
     # receiver (its points are shared by its links), in quadrature over receivers
     raw = face_mean_errors(state.nodes, links, source, weighted=False)
