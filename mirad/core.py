@@ -69,6 +69,7 @@ class State:
     offset: float                  # m, ray ends lifted off surfaces
     links: Links
     buffers: NodeBuffers | None = None
+    evaluator: object | None = None           # distributed.DaskEvaluator running the transfer waves, or None
     direct: np.ndarray | None = None          # (N, C) direct irradiance of leaves, W/m^2
     direct_error: np.ndarray | None = None    # (N, C) its standard error
     direct_samples: np.ndarray | None = None  # (N,) points it came from
@@ -122,17 +123,27 @@ def build(scene: Scene, settings: Settings) -> State:
     return state
 
 
+def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int):
+    """``transfer.evaluate`` of links recv <- src (M,) on the state's nodes: in this process,
+    or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers; the
+    direct light and ``buried_fraction`` always run here)."""
+    if state.evaluator is not None:
+        return state.evaluator.evaluate_transfers(state.nodes, recv, src, rays_per_point=rays_per_point, seed=seed,
+                                                  offset=state.offset)
+    if state.buffers is None or state.buffers.size != len(state.nodes):
+        state.buffers = NodeBuffers.upload(state.nodes)
+    return evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays_per_point, seed=seed,
+                    offset=state.offset)
+
+
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
     """One transfer wave per ray count; returns the evaluated links (same order)."""
     t = time.perf_counter()
-    if state.buffers is None or state.buffers.size != len(state.nodes):
-        state.buffers = NodeBuffers.upload(state.nodes)
     out = Links(recv.astype(np.int32), src.astype(np.int32), *(np.zeros(len(recv), np.float32) for _ in range(5)),
                 rays.astype(np.int16))
     for r in np.unique(rays):
         idx = np.flatnonzero(rays == r)
-        pt = evaluate(state.scene.mi_scene, state.buffers, recv[idx], src[idx], rays_per_point=int(r),
-                      seed=state.settings.seed + 0x10000 * int(r), offset=state.offset)
+        pt = _transfers(state, recv[idx], src[idx], int(r), state.settings.seed + 0x10000 * int(r))
         state.rays += pt.rays
         part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
         for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread"):
@@ -391,9 +402,6 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
     """Transfers recv <- src (M,) at the receivers' K points with ``rays`` (M,) shadow rays
     per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
     point's own visibility (M, K), seconds in the waves)."""
-    nodes = state.nodes
-    if state.buffers is None or state.buffers.size != len(nodes):
-        state.buffers = NodeBuffers.upload(nodes)
     out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(3)]
     seconds = 0.0
     for count in np.unique(rays):
@@ -401,8 +409,7 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
         for a in range(0, len(group), GATHER_CHUNK):
             idx = group[a:a + GATHER_CHUNK]
             t1 = time.perf_counter()
-            pt = evaluate(state.scene.mi_scene, state.buffers, recv[idx], src[idx], rays_per_point=int(count),
-                          seed=state.settings.seed + 0x7E57, offset=state.offset)
+            pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57)
             seconds += time.perf_counter() - t1
             state.rays += pt.rays
             out[0][idx], out[1][idx], out[2][idx] = pt.g, pt.gv, pt.gv_point
@@ -751,12 +758,14 @@ def tree_depth(nodes: Nodes) -> int:
     return depth
 
 
-def solve_hierarchical(scene: Scene, settings: Settings, max_links: int):
-    """Hierarchical radiosity on a loaded scene; returns a Solution."""
+def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, evaluator=None):
+    """Hierarchical radiosity on a loaded scene; returns a Solution. ``evaluator``: a
+    ``distributed.DaskEvaluator`` for the transfer waves (its caller closes it), or None."""
     from .solution import Solution
 
     t_start = time.perf_counter()
     state = build(scene, settings)
+    state.evaluator = evaluator
     link(state)
     nodes = state.nodes
     # one wave per pass: a link reaches the input triangles in as many passes as the tree

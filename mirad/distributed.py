@@ -1,33 +1,44 @@
-"""Visibility waves (and path-traced references) on a Dask cluster.
+"""Visibility and transfer waves (and path-traced references) on a Dask cluster.
 
 ``Settings.workers = N`` starts a ``distributed.LocalCluster`` of N single-threaded worker
 processes on this machine; ``Settings.scheduler = "tcp://host:8786"`` connects to a running
-scheduler instead. Either way each worker
+scheduler instead. Either core sends its waves there. Each worker
 
 - loads the scene from its file once (``mirad.load_scene``, cached per worker process and
   keyed by the file's absolute path and the scene fingerprint, checked after loading), so a
   file that differs on the worker is an error, not a silently different answer (with a remote
   scheduler the same absolute path must exist on every worker, e.g. a shared file system);
-- receives the element geometry of a wave as numpy arrays (scattered once per wave, cached
-  per worker by a content hash) and a batch of links (receiver ids, source ids, visibility
+- receives the arrays a wave reads as numpy arrays, scattered once to every worker and
+  cached per worker by a token unique to their content: the legacy core's element geometry
+  (sent when it changed since the last wave), the hierarchical core's node arrays
+  (``node_arrays``: sent when the node count changed, as the in-process core uploads its
+  ``NodeBuffers`` again only then). Both only grow by appended rows, so usually just the
+  rows added since the last send travel, and a worker appends them to what it holds;
+- receives a batch of links: receiver ids, source ids (and the legacy core's visibility
   classes);
-- runs the same fused Dr.Jit kernels as the single-process solver
-  (``visibility.evaluate_links`` on a ``Geometry`` uploaded on the worker).
+- runs the same fused Dr.Jit kernels as the single-process solver: the legacy core's
+  ``visibility.evaluate_links`` on a ``Geometry`` uploaded on the worker, the hierarchical
+  core's ``transfer.evaluate`` (with the wave's rays per point, seed and ray offset) on
+  ``NodeBuffers`` uploaded on the worker, returning its per-point arrays g, gv, gv_point.
 
-The kernels draw every random number from a hash of the seed and the element ids of a
-link, so splitting a wave's link list into batches gives bitwise the same per-link results
-as one launch: the solution is identical to the in-process one for a fixed seed
-(tests/test_distributed.py checks it).
+The kernels draw every random number from a hash of the seed and the element (node) ids of
+a link, so splitting a wave's link list into batches gives bitwise the same per-link results
+as one launch: the solution (links, rays, radiosity, estimate) is identical to the in-process
+one of the same core for a fixed seed (tests/test_distributed.py checks both cores).
 
 A scene handed over as a Mitsuba dict or an ``mi.Scene`` has no file a worker could load:
 those raise ``SettingsError``. Local worker processes are started with ``spawn``, so a script
 that asks for workers must guard its entry point with ``if __name__ == "__main__":``.
 
-Only ``Problem.evaluate`` (the link waves: refinement and the final fresh-sample pass) goes
-to the workers; the matrix entries of cluster links (``visibility.cluster_link_entries``)
-and the direct-light pass still run in the client process.
+Only the link waves go to the workers: the legacy core's ``Problem.evaluate`` (refinement
+and the final fresh-sample pass), the hierarchical core's ``core._transfers`` (linking,
+refinement and the final gather). The legacy core's cluster-link matrix entries
+(``visibility.cluster_link_entries``), the hierarchical core's buried-surface rays
+(``transfer.buried_fraction``) and either core's direct-light pass still run in the client
+process, as do the linear solves.
 
 >>> sol = mirad.solve("scenes/cornell-box/scene.xml", workers=2)            # doctest: +SKIP
+>>> sol = mirad.solve("scenes/cornell-box/scene.xml", core="hierarchical", workers=2)  # doctest: +SKIP
 >>> sol = mirad.solve("scene.xml", scheduler="tcp://10.0.0.5:8786")         # doctest: +SKIP
 """
 
@@ -170,6 +181,31 @@ def _upload_clusters(arrays: dict | None):
                            arrays["patches"], arrays["count"])
 
 
+#: The ``nodes.Nodes`` fields that ``transfer.NodeBuffers.upload`` reads.
+NODE_FIELDS = ("kind", "poly", "normal", "fill", "area", "recv_pts", "recv_nrm", "src_pts", "src_nrm")
+
+
+def node_arrays(nodes) -> dict:
+    """The arrays of a ``nodes.Nodes`` (N nodes) that the hierarchical core's transfer waves
+    read, as ``NodeBuffers.upload`` converts them: float32 (bitwise what it uploads), ``kind``
+    uint32, ``size`` N. Shapes as in ``Nodes``: poly (N, 4, 3), recv_pts (N, K, 3), ..."""
+    out = {name: np.ascontiguousarray(getattr(nodes, name), np.float32) for name in NODE_FIELDS if name != "kind"}
+    out["kind"] = np.ascontiguousarray(nodes.kind, np.uint32)
+    out["size"] = len(nodes)
+    return out
+
+
+class _NodeArrays:
+    """What ``NodeBuffers.upload`` reads of a ``Nodes``, rebuilt from ``node_arrays`` on a worker."""
+
+    def __init__(self, arrays: dict):
+        for name in NODE_FIELDS:
+            setattr(self, name, arrays[name])
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+
 def _token(arrays: dict | None) -> str:
     if arrays is None:
         return "none"
@@ -211,6 +247,18 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
     wave = evaluate_links(scene.mi_scene, geo, recv, src, samples=samples, seed=seed, clusters=clusters,
                           vclass=vclass)
     return tuple(getattr(wave, f) for f in LinkWave.FIELDS), wave.rays
+
+
+def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
+    """One batch of hierarchical-core links on a worker: ``transfer.evaluate``'s per-point
+    arrays g, gv, gv_point (M, K) float32 and the ray count."""
+    from .transfer import NodeBuffers, evaluate
+
+    scene = _worker_scene(key)
+    token = nodes_payload[-1][0]
+    buffers = _cached("h" + token, lambda: NodeBuffers.upload(_NodeArrays(_assemble(nodes_payload))))
+    pt = evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point, seed=seed, offset=offset)
+    return pt.g, pt.gv, pt.gv_point, pt.rays
 
 
 def _preload_task(key: _SceneKey) -> int:
@@ -287,7 +335,9 @@ def check_main_guard(workers: int) -> None:
 # ------------------------------------------------------------------------------------------
 
 class DaskEvaluator:
-    """Runs link waves on a Dask cluster; made lazily by the solver (``Problem.evaluate``).
+    """Runs link waves on a Dask cluster: the legacy core's (``evaluate_links``, made lazily by
+    ``Problem.evaluate``) or the hierarchical core's (``evaluate_transfers``, made by
+    ``solver.solve_problem`` before the solve and closed after it, also on error).
 
     Parameters
     ----------
@@ -317,8 +367,8 @@ class DaskEvaluator:
             self.client = distributed.Client(self._cluster)
         self.workers = max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
         self.key = _SceneKey(path, scene.fingerprint, scene.variant, threads)
-        self._geo_chain = []           # futures of (token, rows) parts: the geometry sent so far
-        self._geo_sent = None          # numpy arrays of the geometry sent so far
+        self._chains = {}              # slot -> (futures of (token, rows) parts, numpy arrays sent so far)
+        self._nodes = (-1, [])         # (node count, chain) of the hierarchical core's nodes sent last
         self._cl = (None, None)
         self.batches = 0
         # every worker starts loading the scene now, while the client links and uploads
@@ -337,26 +387,29 @@ class DaskEvaluator:
         setattr(self, slot, (token, future))
         return future
 
-    def _scatter_geometry(self, arrays: dict) -> list:
+    def _scatter_rows(self, slot: str, arrays: dict) -> list:
         """Send the rows the workers do not have yet; returns the chain of part futures.
 
-        Elements only ever grow (refinement appends children), so each wave usually sends just
-        the elements added since the last one; anything else starts a new chain.
+        ``arrays`` is a struct of arrays (N, ...) with N in ``arrays["size"]``, and scalars.
+        Elements (and nodes) only ever grow (refinement appends children), so each wave
+        usually sends just the rows added since the last one of this ``slot``; anything else
+        (other scalars, a changed row) starts a new chain.
         """
-        sent = self._geo_sent
+        chain, sent = self._chains.get(slot, ([], None))
         n_old = 0 if sent is None else sent["size"]
-        extends = (sent is not None and arrays["size"] >= n_old and arrays["offset"] == sent["offset"]
-                   and all(np.array_equal(arrays[k][:n_old], sent[k]) for k in sent if isinstance(sent[k], np.ndarray)))
+        extends = (sent is not None and arrays["size"] >= n_old
+                   and all(arrays[k] == v for k, v in sent.items() if not isinstance(v, np.ndarray) and k != "size")
+                   and all(np.array_equal(arrays[k][:n_old], v) for k, v in sent.items() if isinstance(v, np.ndarray)))
         if extends and arrays["size"] == n_old:
-            return self._geo_chain
+            return chain
         if extends:
             part = {k: (v[n_old:] if isinstance(v, np.ndarray) else v) for k, v in arrays.items()}
         else:
-            part, self._geo_chain = arrays, []
+            part, chain = arrays, []
         token = uuid.uuid4().hex          # unique per part (hashing 30 MB per wave costs more than sending)
-        self._geo_chain = self._geo_chain + [self.client.scatter((token, part), broadcast=True, hash=False)]
-        self._geo_sent = arrays
-        return self._geo_chain
+        chain = chain + [self.client.scatter((token, part), broadcast=True, hash=False)]
+        self._chains[slot] = (chain, arrays)
+        return chain
 
     def evaluate_links(self, mi_scene, geo, recv: np.ndarray, src: np.ndarray, *, samples: int, seed: int,
                        clusters=None, vclass: np.ndarray | None = None):
@@ -372,7 +425,7 @@ class DaskEvaluator:
         if m == 0:
             return LinkWave(*(np.zeros(0, np.float32) for _ in LinkWave.FIELDS), 0)
         t0 = time.perf_counter()
-        geo_f = self._scatter_geometry(geometry_arrays(geo))
+        geo_f = self._scatter_rows("geometry", geometry_arrays(geo))
         cl_f = self._scatter("_cl", cluster_arrays(clusters))
         t1 = time.perf_counter()
         self.timing["scatter"] += t1 - t0
@@ -386,6 +439,37 @@ class DaskEvaluator:
         self.batches += len(futures)
         fields = [np.concatenate([r[0][i] for r in results]) for i in range(len(LinkWave.FIELDS))]
         return LinkWave(*fields, int(sum(r[1] for r in results)))
+
+    def evaluate_transfers(self, nodes, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int, seed: int,
+                           offset: float):
+        """Same contract (and bitwise the same results) as ``transfer.evaluate`` on
+        ``NodeBuffers.upload(nodes)``: the hierarchical core's links recv <- src (M,).
+
+        Like the in-process core, which uploads its node buffers again only when the node
+        count changes, the node arrays go to the workers once per change of ``len(nodes)``
+        (just the rows added since the last send, when the others are unchanged)."""
+        from .nodes import RECEIVER_POINTS
+        from .transfer import PointTransfers
+
+        m = len(recv)
+        if m == 0:
+            return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(3)), 0)
+        t0 = time.perf_counter()
+        if self._nodes[0] != len(nodes):
+            self._nodes = (len(nodes), self._scatter_rows("nodes", node_arrays(nodes)))
+        chain = self._nodes[1]
+        t1 = time.perf_counter()
+        self.timing["scatter"] += t1 - t0
+        batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
+        bounds = np.linspace(0, m, batches + 1).astype(np.int64)
+        futures = [self.client.submit(_transfers_task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
+                                      int(seed), float(offset), pure=False)
+                   for a, b in zip(bounds[:-1], bounds[1:])]
+        results = self.client.gather(futures)
+        self.timing["run"] += time.perf_counter() - t1
+        self.batches += len(futures)
+        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(3)),
+                              int(sum(r[3] for r in results)))
 
     def reference(self, scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                   method: str = "outgoing", chunk: int = 4096):

@@ -332,9 +332,9 @@ class Problem:
 
 def uses_hierarchical_core(settings: Settings) -> bool:
     """Whether a solve runs on the hierarchical core (core.py): asked for, and no feature
-    that only the legacy core has (shadow textures, Dask waves, the bf/bound oracles)."""
-    return (settings.core == "hierarchical" and not settings.shadow_textures and not settings.workers
-            and settings.scheduler is None and settings.oracle == "kernel")
+    that only the legacy core has (shadow textures, the bf/bound oracles). Dask workers run
+    either core's waves."""
+    return settings.core == "hierarchical" and not settings.shadow_textures and settings.oracle == "kernel"
 
 
 def check_link_budget(scene: Scene, minimum: int, max_links: int, what: str) -> None:
@@ -393,7 +393,16 @@ def solve_problem(scene: Scene, settings: Settings):
     if uses_hierarchical_core(settings):
         from .core import solve_hierarchical
 
-        return solve_hierarchical(scene, settings, max_links)
+        evaluator = None
+        if settings.workers or settings.scheduler:
+            from .distributed import DaskEvaluator
+
+            evaluator = DaskEvaluator(scene, workers=settings.workers, scheduler=settings.scheduler)
+        try:
+            return solve_hierarchical(scene, settings, max_links, evaluator=evaluator)
+        finally:
+            if evaluator is not None:
+                evaluator.close()
     t_start = time.perf_counter()
     prob = Problem(scene, settings)
     if prob.clusters is None and 2 * patches * (patches - 1) > prob.max_links:   # else no pair count can pass

@@ -1,4 +1,5 @@
-"""Dask scale-out (mirad/distributed.py): bitwise the same results as the in-process solver.
+"""Dask scale-out (mirad/distributed.py): bitwise the same results as the in-process solver,
+on either core (the legacy core's link waves, the hierarchical core's transfer waves).
 
 The LocalCluster runs 2 worker *processes* (processes=True, spawn): they start in ~3 s here,
 and process workers are what a real scale-out uses (a separate Dr.Jit per worker).
@@ -26,15 +27,35 @@ def evaluator():
         yield scene, ev
 
 
-@pytest.mark.parametrize("clustering", ["off", "on"])
-def test_solve_on_two_workers_is_bitwise_the_in_process_solve(clustering):
-    a = mirad.solve(CORNELL, tolerance=0.2, clustering=clustering)
-    b = mirad.solve(CORNELL, tolerance=0.2, clustering=clustering, workers=2)
+@pytest.mark.parametrize("core, clustering", [("legacy", "off"), ("legacy", "on"), ("hierarchical", "on")])
+def test_solve_on_two_workers_is_bitwise_the_in_process_solve(core, clustering, monkeypatch):
+    a = mirad.solve(CORNELL, tolerance=0.2, clustering=clustering, core=core, quiet=True)
+    if core == "hierarchical":
+        # its waves at this tolerance are a few hundred links: split them over both workers
+        monkeypatch.setattr(distributed, "MIN_BATCH", 32)
+    b = mirad.solve(CORNELL, tolerance=0.2, clustering=clustering, core=core, quiet=True, workers=2)
+    assert a.stats.get("core", "legacy") == b.stats.get("core", "legacy") == core   # (legacy stats have no "core")
     assert a.stats["links"] == b.stats["links"] and a.stats["rays"] == b.stats["rays"]
     assert a.stats["elements"] == b.stats["elements"]
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
     np.testing.assert_array_equal(a.vertex_radiosity, b.vertex_radiosity)
     assert a.stats["estimated_error"] == b.stats["estimated_error"]
+
+
+def test_hierarchical_solve_closes_its_workers_on_error(monkeypatch):
+    from mirad import core
+
+    closed = []
+    monkeypatch.setattr(distributed.DaskEvaluator, "close", lambda self, close=distributed.DaskEvaluator.close:
+                        (closed.append(True), close(self)))
+
+    def fail(state):
+        raise RuntimeError("stage failed")
+
+    monkeypatch.setattr(core, "link", fail)
+    with pytest.raises(RuntimeError, match="stage failed"):
+        mirad.solve(CORNELL, tolerance=0.2, core="hierarchical", quiet=True, workers=2)
+    assert closed == [True]
 
 
 def test_any_split_of_a_wave_gives_bitwise_the_same_links(evaluator, monkeypatch):
@@ -63,6 +84,48 @@ def test_any_split_of_a_wave_gives_bitwise_the_same_links(evaluator, monkeypatch
     assert one.rays == many.rays > 0
 
 
+@pytest.mark.parametrize("rays_per_point", [1, 3])
+def test_any_split_of_a_transfer_wave_gives_bitwise_the_same_points(evaluator, monkeypatch, rays_per_point):
+    """Hierarchical-core transfers over random node pairs, split into many small batches,
+    before and after splits grew the nodes (the workers then get only the new rows)."""
+    from mirad import core
+    from mirad.nodes import split_triangles
+    from mirad.transfer import NodeBuffers, evaluate
+
+    scene, ev = evaluator
+    state = core.build(scene, mirad.make_settings(core="hierarchical", tolerance=0.1, quiet=True))
+    monkeypatch.setattr(distributed, "MIN_BATCH", 97)         # odd batch boundaries
+    monkeypatch.setattr(distributed, "BATCHES_PER_WORKER", 7)
+    rng = np.random.default_rng(rays_per_point)
+    for grow in (False, True):
+        if grow:
+            n = len(state.nodes)
+            split_triangles(state.nodes, np.flatnonzero(state.nodes.kind == core.TRIANGLE)[::3], state.surface)
+            assert len(state.nodes) > n
+        nodes = state.nodes
+        recv = rng.choice(np.flatnonzero(nodes.kind != core.VOLUME), 2000).astype(np.int32)
+        src = rng.integers(0, len(nodes), 2000).astype(np.int32)
+        kw = dict(rays_per_point=rays_per_point, seed=11, offset=state.offset)
+        one = evaluate(scene.mi_scene, NodeBuffers.upload(nodes), recv, src, **kw)
+        before = ev.batches
+        many = ev.evaluate_transfers(nodes, recv, src, **kw)
+        assert ev.batches - before == 14
+        assert len(ev._chains["nodes"][0]) == 1 + grow            # grown: only the new rows were sent
+        for name in ("g", "gv", "gv_point"):
+            np.testing.assert_array_equal(getattr(one, name), getattr(many, name), err_msg=name)
+        assert one.rays == many.rays > 0 and np.count_nonzero(one.gv) > 0
+
+
+def test_empty_transfer_wave(evaluator):
+    from mirad import core
+
+    scene, ev = evaluator
+    state = core.build(scene, mirad.make_settings(core="hierarchical", quiet=True))
+    pt = ev.evaluate_transfers(state.nodes, np.zeros(0, np.int32), np.zeros(0, np.int32), rays_per_point=1, seed=0,
+                               offset=state.offset)
+    assert pt.rays == 0 and all(getattr(pt, f).shape == (0, core.RECEIVER_POINTS) for f in ("g", "gv", "gv_point"))
+
+
 def test_empty_wave(evaluator):
     scene, ev = evaluator
     prob = Problem(scene, mirad.make_settings())
@@ -86,9 +149,10 @@ def test_reference_chunks_match_in_process_chunks(evaluator):
         np.testing.assert_array_equal(ref.stderr[tris], local.stderr)
 
 
-def test_workers_need_a_scene_file():
+@pytest.mark.parametrize("core", ["legacy", "hierarchical"])
+def test_workers_need_a_scene_file(core):
     with pytest.raises(SettingsError, match="need a scene file"):
-        mirad.solve(closed_box(0.5, 1.0), tolerance=0.2, workers=2)
+        mirad.solve(closed_box(0.5, 1.0), tolerance=0.2, workers=2, core=core)
 
 
 @pytest.mark.parametrize("bad", [{"workers": -1}, {"workers": 1.5}, {"workers": True}, {"scheduler": " "},
