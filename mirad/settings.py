@@ -105,17 +105,17 @@ class Settings:
     quiet : bool, default False
         No progress bars.
     workers : int, default 0
-        Run the visibility waves on a Dask ``LocalCluster`` of this many worker processes
-        (mirad/distributed.py); 0: in this process. Results are bitwise the same. Needs a
+        Run the link waves (either core's) on a Dask ``LocalCluster`` of this many worker
+        processes (mirad/distributed.py); 0: in this process. Results are bitwise the same. Needs a
         scene loaded from a file (workers load it themselves).
     scheduler : str or None, default None
         Address of a running Dask scheduler (e.g. "tcp://10.0.0.5:8786") to run the
-        visibility waves on instead of a local cluster; takes precedence over ``workers``.
+        link waves on instead of a local cluster; takes precedence over ``workers``.
     core : str, default "legacy"
         "hierarchical": links at any level between volume clusters, face clusters and
         triangles, exact unoccluded transfers, rays for visibility only (core.py);
         "legacy": links on receiver leaves with Monte Carlo transfers (solver.py). Shadow
-        textures, Dask workers and the ``bf``/``bound`` oracles run on the legacy core.
+        textures and the ``bf``/``bound`` oracles run on the legacy core.
     """
 
     tolerance: float = 0.03
