@@ -74,6 +74,7 @@ class State:
     direct_error: np.ndarray | None = None    # (N, C) its standard error
     direct_samples: np.ndarray | None = None  # (N,) points it came from
     buried: np.ndarray | None = None          # (N,) share of a triangle node's area inside closed geometry
+    direct_bound: np.ndarray | None = None    # (N,) W/m^2 bound of point/spot light on a leaf (emitters.delta_light_bound)
     rays: int = 0
     waves: int = 0
 
@@ -85,6 +86,7 @@ class State:
         self.direct_error = np.zeros((n, self.channels))
         self.direct_samples = np.zeros(n, np.int64)
         self.buried = np.zeros(n)
+        self.direct_bound = np.zeros(n)
 
 
 def _surface(scene: Scene, channels: int, seed: int) -> Surface:
@@ -263,6 +265,7 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
 def _grow_direct(state: State, n_before: int) -> None:
     grown = len(state.nodes) - n_before
     c = state.channels
+    state.direct_bound = np.concatenate([state.direct_bound, np.zeros(grown)])
     state.direct = np.concatenate([state.direct, np.zeros((grown, c))])
     state.direct_error = np.concatenate([state.direct_error, np.zeros((grown, c))])
     state.direct_samples = np.concatenate([state.direct_samples, np.zeros(grown, np.int64)])
@@ -274,7 +277,7 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     scene = state.scene
     if not scene.light_emitters or not len(ids):
         return
-    from .emitters import direct_irradiance
+    from .emitters import delta_light_bound, direct_irradiance
 
     t = time.perf_counter()
     nodes = state.nodes
@@ -283,6 +286,9 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     h, err, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
                                      seed=state.settings.seed + samples, keys=ids, with_error=True)
     state.direct[ids] = h[:, : state.channels]
+    fresh = ids[state.direct_samples[ids] == 0]
+    if len(fresh):
+        state.direct_bound[fresh] = delta_light_bound(scene, nodes.poly[fresh, :3], nodes.normal[fresh])
     state.direct_error[ids] = err[:, : state.channels]
     state.direct_samples[ids] = samples
     state.rays += rays
@@ -292,7 +298,11 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     """(L,) expected absolute error of each leaf's direct light as power, W."""
     weight = state.patch_rho[state.nodes.patch[leaves]] if ERRORS_OF == "radiosity" else 1.0
-    return EXPECTED_ABS * state.nodes.area[leaves] * (weight * state.direct_error[leaves]).max(axis=1)
+    sampled = EXPECTED_ABS * (weight * state.direct_error[leaves]).max(axis=1)
+    # a point or spot light's feature smaller than one of the samples' strata may be missed
+    # altogether (zero variance, zero estimate): at most the leaf's bound over the strata
+    missed = np.max(np.atleast_2d(weight), axis=-1) * state.direct_bound[leaves] / np.maximum(state.direct_samples[leaves], 1)
+    return state.nodes.area[leaves] * np.maximum(sampled, missed)
 
 
 def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
@@ -304,6 +314,27 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
         ids = noisy[state.direct_samples[noisy] == samples]
         direct(state, ids, int(min(4 * samples, MAX_DIRECT_SAMPLES)))
     return len(noisy) > 0
+
+
+def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
+    """Split the triangle leaves whose direct-light error still exceeds eps (W) at the most
+    points (MAX_DIRECT_SAMPLES): a narrow spot's cone or a point light's fall-off on a large
+    triangle is then resolved by smaller ones, which get their own points (their links stay
+    on the parent and reach them by the push)."""
+    if not state.scene.light_emitters:
+        return False
+    nodes = state.nodes
+    stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] >= MAX_DIRECT_SAMPLES)
+                   & (nodes.kind[leaves] == TRIANGLE)]
+    stuck = stuck[nodes.splittable(state.min_area)[stuck]]
+    if not len(stuck):
+        return False
+    n_before = len(nodes)
+    split_triangles(nodes, stuck, state.surface)
+    _grow_direct(state, n_before)
+    grown = np.arange(n_before, len(nodes))
+    _measure_buried(state, grown[state.buried[nodes.parent[grown]] > 0])
+    return True
 
 
 @dataclass
@@ -794,13 +825,22 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
             eps = refinement_threshold(np.concatenate([est.link_errors, est.direct]), budget)
             leaves = state.nodes.leaves
             resampled = resample_direct(state, leaves, eps)
+            resampled |= split_direct(state, leaves, eps)
             # one wave per pass: the children's errors are judged after the next solve, from
             # the radiosity they bring (their parents' errors and eps were judged without it)
             changed, capped = refine(state, src_state, eps, max_links, max_waves=1)
             n_leaves = len(state.nodes.leaves)
             if n_leaves != len(leaves):
                 new = state.nodes.leaves
-                direct(state, new[state.direct_samples[new] == 0], min(settings.samples_per_link, MAX_DIRECT_SAMPLES))
+                new = new[state.direct_samples[new] == 0]
+                # a child keeps its parent's density of points (a quarter of them for a
+                # quarter of the area), at least the initial count
+                parent = state.nodes.parent[new]
+                inherited = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // 4, 0)
+                first = min(settings.samples_per_link, MAX_DIRECT_SAMPLES)
+                count = np.maximum(inherited, first)
+                for samples in np.unique(count):
+                    direct(state, new[count == samples], int(samples))
             passes += 1
             bar.update(1)
             if not (changed or resampled):
