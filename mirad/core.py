@@ -317,15 +317,18 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
 
 
 def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
-    """Split the triangle leaves whose direct-light error still exceeds eps (W) at the most
-    points (MAX_DIRECT_SAMPLES): a narrow spot's cone or a point light's fall-off on a large
+    """Split the triangle leaves where what their points may miss of point and spot lights
+    still exceeds eps (W) at the most points (MAX_DIRECT_SAMPLES): a narrow spot's cone or a point light's fall-off on a large
     triangle is then resolved by smaller ones, which get their own points (their links stay
     on the parent and reach them by the push)."""
     if not state.scene.light_emitters:
         return False
     nodes = state.nodes
-    stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] >= MAX_DIRECT_SAMPLES)
-                   & (nodes.kind[leaves] == TRIANGLE)]
+    # (only leaves a point or spot light reaches: a sun's or sky's shadow noise at the most
+    # points stays in the estimate, as splitting would chase the i.i.d. error bound of
+    # stratified points over a whole canopy)
+    stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_bound[leaves] > 0)
+                   & (state.direct_samples[leaves] >= MAX_DIRECT_SAMPLES) & (nodes.kind[leaves] == TRIANGLE)]
     stuck = stuck[nodes.splittable(state.min_area)[stuck]]
     if not len(stuck):
         return False
