@@ -388,7 +388,15 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
     """Irradiance (P, C), W/m^2, at points (P, 3) with normals (P, 3) from every leaf.
 
     H(x) = sum_l B_l * F(dA_x -> leaf l) * v(x, l), with Lambert's analytic form factor
-    and v the fraction of ``rays`` stratified shadow rays from x to leaf l that arrive.
+    (clipped to x's tangent half-space) and v the visible fraction of ``rays`` stratified
+    shadow rays from x to leaf l, as the link kernel weighs it: over the rays to points of
+    the leaf in front of x (the part the clipped form factor counts), each weighted by its
+    point-to-point kernel. A leaf straddling x's tangent plane (a ceiling light seen from a
+    box's side) so keeps its visible part once: its rays into the surface under x are
+    blocked, and counting them again darkened such leaves by the share behind the horizon.
+    A leaf whose rays all point behind x's plane gives nothing. A point in, or within
+    rounding of, a leaf's plane sees nothing of it (float32 rounding used to put a probe on
+    a tilted face in front of its own leaf, where Lambert's formula gives 1).
     ``geo`` holds the leaves only; ``radiosity`` is (L, C). ``progress``, if given, is called
     with the number of points finished after every launch (it does not change the result).
 
@@ -404,6 +412,7 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
     pts_per_launch = max(1, MAX_LANES // max(1, n_leaf * rays))
     out = np.zeros((n_pts, channels))
     err = np.zeros((n_pts, channels)) if with_error else None
+    in_plane = 0.1 * geo.offset
     for start in range(0, n_pts, pts_per_launch):
         stop = min(n_pts, start + pts_per_launch)
         m = stop - start
@@ -417,7 +426,8 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         nx = dr.gather(mi.Vector3f, n_dr, pidx)
         sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(leaf)
         key = hash_u32(hash_u32(pidx + mi.UInt32(start) + hash_u32(mi.UInt32(seed))) + leaf * 0x632BE5AB + k)
-        front = dr.dot(sn, x - sv0) > 0
+        # (as in the link kernel: within rounding of a leaf's plane, nothing of it is seen)
+        front = dr.dot(sn, x - sv0) > in_plane
         g = dr.select(front, point_to_triangle_dr(x, nx, sv0, sv1, sv2), 0.0)
         us, vs = stratified(k, rays, key)
         y = triangle_point(sv0, sv1, sv2, us, vs)
@@ -425,22 +435,30 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         o = x + nx * geo.offset
         d = ys + yn * geo.offset - o
         dist = dr.norm(d)
-        active = (g > 0) & (dist > 0)
+        # only rays to the leaf's points in front of x (and reaching the leaf's front) sample
+        # the part of it the clipped form factor counts
+        active = (g > 0) & (dist > 0) & (dr.dot(d, nx) > 0) & (dr.dot(d, sn) < 0)
         ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
         ray.maxt = dist * (1 - 1e-4)
         blocked = mi_scene.ray_test(ray, active)
-        weight = dr.select(active & ~blocked, g * (1.0 / rays), 0.0)
+        seen = active & ~blocked
+        kernel = dr.select(active, dr.dot(d, nx) * -dr.dot(d, sn) / dr.square(dr.square(dist)), 0.0)
+        lanes = [kernel, dr.select(seen, kernel, 0.0)]
+        dr.eval(*lanes)           # one launch of the rays, then block sums over stored arrays
+        k_sum, kv_sum = dr.block_sum(lanes[0], rays), dr.block_sum(lanes[1], rays)
+        # per (point, leaf) pair: the kernel-weighted visible fraction and the (clipped) form factor
+        v = dr.select(k_sum > 0, kv_sum / dr.select(k_sum > 0, k_sum, 1.0), 0.0)
+        first = dr.arange(mi.UInt32, m * n_leaf) * rays
+        g_pair = dr.gather(mi.Float, g, first)
+        gv = g_pair * v
+        leaf_pair = dr.arange(mi.UInt32, m * n_leaf) % n_leaf
+        dr.eval(gv)
         for c in range(channels):
-            h = dr.block_sum(weight * dr.gather(mi.Float, b_dr[c], leaf), n_leaf * rays)
+            h = dr.block_sum(gv * dr.gather(mi.Float, b_dr[c], leaf_pair), n_leaf)
             out[start:stop, c] = h.numpy()
         if with_error and rays > 1:
-            # per (point, leaf) pair: visible fraction v and the form factor g of its first ray
-            v = dr.block_sum(dr.select(active & ~blocked, 1.0, 0.0), rays) * (1.0 / rays)
-            first = dr.arange(mi.UInt32, m * n_leaf) * rays
-            g_pair = dr.gather(mi.Float, g, first)
             spread = g_pair * g_pair * v * (1.0 - v) * (1.0 / (rays - 1))
-            dr.eval(spread)                                   # one more launch of the rays, not one per channel
-            leaf_pair = dr.arange(mi.UInt32, m * n_leaf) % n_leaf
+            dr.eval(spread)
             for c in range(channels):
                 b = dr.gather(mi.Float, b_dr[c], leaf_pair)
                 var = dr.block_sum(spread * b * b, n_leaf)

@@ -341,3 +341,48 @@ def test_probe_warns_once_naming_probes_left_above_tolerance(roofed_sky):
     up = np.tile([0.0, 0.0, 1.0], (3, 1))
     with pytest.warns(UserWarning, match=r"3 of 3 probes .*tolerance 0.001 \(probes 0, 1, 2\).*max_samples=256"):
         roofed_sky.irradiance_at(p, up, tolerance=0.001, max_samples=256)
+
+
+# ------------------------------------------------------------------------------------------
+# The local gather near its own surface (probes on tilted faces, lights across their horizon)
+# ------------------------------------------------------------------------------------------
+
+def _light(to_world, radiance=1.0) -> dict:
+    return {**_black(to_world), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": radiance}}}
+
+
+def test_probe_on_a_tilted_light_sees_nothing_of_its_own_plane():
+    """A probe on a tilted emitting square gathers nothing from the square's own (coplanar) leaves:
+    H = 0 exactly (the black floor far below reflects nothing). float32 rounding put such probes a
+    hair in front of their own leaf, where Lambert's formula gives 1: H was E there (the small box
+    of the 36-triangle Cornell box read up to 75 % too bright under the hierarchical core)."""
+    tilt = T().translate([0.0, 0.0, 1.0]).rotate([1.0, 1.0, 0.3], 37.0).scale(0.5)
+    scene = {"type": "scene", "light": _light(tilt, 1.0), "floor": _black(T().translate([0, 0, -20]).scale(0.1))}
+    sol = mirad.solve(scene, core="hierarchical", tolerance=0.05)
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(-0.95, 0.95, (64, 2))
+    p = np.array([tilt @ mi.ScalarPoint3f(u, v, 0.0) for u, v in uv], np.float64)
+    n = np.tile(np.array(tilt @ mi.ScalarNormal3f(0.0, 0.0, 1.0), np.float64), (len(p), 1))
+    h = sol.irradiance_at(p, n, rays=4)
+    assert np.all(h == 0), (np.count_nonzero(h[:, 0]), h.max())
+
+
+def test_probe_on_a_wall_under_a_light_across_its_horizon_matches_the_closed_form():
+    """Probes on a black wall whose plane cuts a square light: H = pi L F with F the form factor to
+    the light clipped to the probe's half-space (the wall hides nothing of that part). The gather
+    counted the rays to the light's far side, which run into the wall, as blocked, on top of the
+    clipped form factor: 18-32 % too dark."""
+    from mirad.formfactor import point_to_polygon
+
+    scene = {"type": "scene",
+             "light": _light(T().translate([0, 0, 1]).rotate([1, 0, 0], 180).scale(0.5)),
+             "wall": _black(T().translate([0.2, 0, 0.45]).rotate([0, 1, 0], -90).scale([0.45, 1.0, 1.0])),
+             "floor": _black(T().scale(2.0))}
+    sol = mirad.solve(scene, core="hierarchical", tolerance=0.1)
+    light = np.array([[-0.5, -0.5, 1], [0.5, -0.5, 1], [0.5, 0.5, 1], [-0.5, 0.5, 1.0]])
+    z = np.array([0.1, 0.3, 0.5, 0.7, 0.85])
+    p = np.stack([np.full_like(z, 0.2), np.linspace(-0.4, 0.4, len(z)), z], 1)
+    n = np.tile([-1.0, 0.0, 0.0], (len(z), 1))
+    exact = np.pi * np.array([point_to_polygon(x, m, light) for x, m in zip(p, n)])
+    h = sol.irradiance_at(p, n, rays=16)
+    assert np.allclose(h, exact[:, None], rtol=CLOSED_FORM_REL), (h[:, 0] / exact)
