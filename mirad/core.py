@@ -532,45 +532,49 @@ def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
 
 
 def final_gather(state: State, solved: Solved) -> Gathered:
-    """Stage gather: the light of links on face clusters, gathered again on each input
-    patch from the sources' solved radiosity.
+    """Stage gather: the light of links on inner nodes (face clusters, and triangles split
+    for other links' sake), gathered again on each leaf from the sources' solved radiosity.
 
-    A face cluster receives its links' light as one mean; pushed down unchanged, every
-    triangle below would get that mean. Here each link descends the receiver's tree: where
-    the light it brings is linear over a node (``smooth_links``), each patch below takes
-    that linear field at its centroid; elsewhere (shadows, nearby sources) the node's
-    children evaluate the link at their own points, down to the input patches, which
-    evaluate it with their own quadrature points and shadow rays. Receivers can so stay
-    coarse where the light is smooth while every input triangle still gets its own share,
-    shadows included. Links on a patch or on its parts are already the patch's own.
+    A link on an inner node brings its light as one mean; pushed down unchanged, every leaf
+    below would get that mean (a floor flattened next to a box standing on it, a large
+    triangle flat under a light). Here each such link descends the receiver's tree: where
+    the light it brings is linear over a node (``smooth_links``), each leaf below takes that
+    linear field at its centroid; elsewhere (shadows, nearby sources) the node's children
+    evaluate the link at their own points, down to the leaves, which evaluate it with their
+    own quadrature points and shadow rays. Receivers can so stay coarse where the light is
+    smooth while every leaf still gets its own share, shadows included. Links on a leaf are
+    already its own.
     """
     t = time.perf_counter()
     nodes, links, leaves = state.nodes, state.links, solved.leaves
-    n_patch = len(state.surface.verts)
-    below = ancestor_matrix(nodes, np.arange(n_patch)).T.tocsr()        # (N, P): patches below a node
-    centroid = state.surface.verts.mean(axis=1)
+    n, n_leaf = len(nodes), len(leaves)
+    below = ancestor_matrix(nodes, leaves).T.tocsr()        # (N, L): leaves (their positions) below a node
+    centroid = nodes.poly[leaves, :3].mean(axis=1)
+    position = np.full(n, -1, np.int64)
+    position[leaves] = np.arange(n_leaf)
+    inner = nodes.children[:, 0] >= 0
     # every node's irradiance from its own links and its ancestors' (brightest channel)
     b_src = channel_max(solved.b_node)
-    h_node = ancestor_matrix(nodes, np.arange(len(nodes))) @ (links.matrix(len(nodes)) @ b_src)
-    on_face = np.flatnonzero(nodes.kind[links.recv] == FACE)
+    h_node = ancestor_matrix(nodes, np.arange(n)) @ (links.matrix(n) @ b_src)
+    on_inner = np.flatnonzero(inner[links.recv])
     # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
     # gather's noise is), the others one
     link_partial = (links.ff < links.ff_unocc) & (links.ff > 0)
-    recv, src = links.recv[on_face].astype(np.int64), links.src[on_face].astype(np.int64)
-    rays = np.where(link_partial[on_face], GATHER_RAYS, 1)
-    smooth_parts = []          # (patch, source, transfer) from linear fits
-    pairs = [(np.zeros(0, np.int64),) * 3]   # (patch, source, rays) to gather at the patch's points
-    inner = 0.0
+    recv, src = links.recv[on_inner].astype(np.int64), links.src[on_inner].astype(np.int64)
+    rays = np.where(link_partial[on_inner], GATHER_RAYS, 1)
+    smooth_parts = []          # (leaf position, source, transfer, variance) from linear fits
+    pairs = [(np.zeros(0, np.int64),) * 3]   # (leaf node, source, rays) to gather at the leaf's points
+    seconds_in_waves = 0.0
     evaluated = 0
     while len(recv):
-        is_face = nodes.kind[recv] == FACE
-        pairs.append((recv[~is_face], src[~is_face], rays[~is_face]))
-        recv, src, rays = recv[is_face], src[is_face], rays[is_face]
+        descend = inner[recv]
+        pairs.append((recv[~descend], src[~descend], rays[~descend]))
+        recv, src, rays = recv[descend], src[descend], rays[descend]
         if not len(recv):
             break
         whole = rays > 1
         g, _, gv, seconds = _point_values(state, recv, src, np.where(whole, SOURCE_POINTS, 1))
-        inner += seconds
+        seconds_in_waves += seconds
         evaluated += len(recv)
         smooth, x0, a, grad, rms = smooth_links(nodes, recv, src, g, gv, b_src[src], h_node[recv],
                                                 state.settings.tolerance, whole)
@@ -579,71 +583,68 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         count = below.indptr[recv[ok] + 1] - start
         owner = np.repeat(np.arange(len(ok)), count)
         offset = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
-        patch = below.indices[np.repeat(start, count) + offset]
+        leaf = below.indices[np.repeat(start, count) + offset]
         k = ok[owner]
-        # (a patch's buried part, inside closed geometry, gets no light)
-        value = (a[k] + np.einsum("mc,mc->m", grad[k], centroid[patch] - x0[k])) * (1.0 - state.buried[patch])
+        # (a leaf's buried part, inside closed geometry, gets no light)
+        value = (a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])) * (1.0 - state.buried[leaves[leaf]])
         # the fit's residual is the interpolation's error, counted like visibility noise
-        smooth_parts.append((patch, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
+        smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth)
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own]
-    pair_patch, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
-    g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_patch, pair_src, pair_rays)
-    inner += seconds
+    pair_node, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
+    g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
+    seconds_in_waves += seconds
     # pairs whose few rays disagreed more than their share of the tolerance allows are
     # evaluated again with a ray to each of the source's points (a quadrature, not a sample)
-    noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_patch],
+    noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
                                                      state.settings.tolerance)) & (pair_rays < SOURCE_POINTS))
     if len(noisy):
         pair_rays[noisy] = SOURCE_POINTS
-        g_ff[noisy], g_var[noisy], seconds = _evaluate_pairs(state, solved, pair_patch[noisy], pair_src[noisy],
+        g_ff[noisy], g_var[noisy], seconds = _evaluate_pairs(state, solved, pair_node[noisy], pair_src[noisy],
                                                              pair_rays[noisy])
-        inner += seconds
+        seconds_in_waves += seconds
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
     for _ in range(tree_depth(nodes)):
-        dist = distance_to_source(nodes, pair_patch, pair_src)
+        dist = distance_to_source(nodes, pair_node, pair_src)
         split = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
             (nodes.kind[pair_src] == FACE) & (g_ff > 0)
         if not split.any():
             break
         kids = nodes.children[pair_src[split]]
         own, slot = np.nonzero(kids >= 0)
-        k_patch, k_src, k_rays = pair_patch[split][own], kids[own, slot], pair_rays[split][own]
-        k_ff, k_var, k_inner = _evaluate_pairs(state, solved, k_patch, k_src, k_rays)
-        inner += k_inner
-        pair_patch = np.concatenate([pair_patch[~split], k_patch])
+        k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
+        k_ff, k_var, k_seconds = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        seconds_in_waves += k_seconds
+        pair_node = np.concatenate([pair_node[~split], k_node])
         pair_src = np.concatenate([pair_src[~split], k_src])
         pair_rays = np.concatenate([pair_rays[~split], k_rays])
         g_ff = np.concatenate([g_ff[~split], k_ff])
         g_var = np.concatenate([g_var[~split], k_var])
-    var = np.bincount(pair_patch, weights=g_var, minlength=n_patch).astype(np.float64)   # (int when empty)
+    pair_leaf = position[pair_node]
+    var = np.bincount(pair_leaf, weights=g_var, minlength=n_leaf).astype(np.float64)   # (int when empty)
     for part in smooth_parts:
-        var += np.bincount(part[0], weights=part[3], minlength=n_patch)
-    gathered_pairs = len(pair_patch)
-    pair_patch = np.concatenate([pair_patch] + [p[0] for p in smooth_parts])
+        var += np.bincount(part[0], weights=part[3], minlength=n_leaf)
+    gathered_pairs = len(pair_leaf)
+    pair_leaf = np.concatenate([pair_leaf] + [p[0] for p in smooth_parts])
     pair_src = np.concatenate([pair_src] + [p[1] for p in smooth_parts])
     g_ff = np.concatenate([g_ff] + [p[2] for p in smooth_parts])
-    # the system again, with every face-cluster link replaced by its patches' own transfers
-    # (P, N): each patch then gathers from the sources' means what reaches its own points,
-    # and a cluster's mean, pulled from its patches, is theirs
-    n = len(nodes)
-    gathered = sp.csr_matrix((g_ff, (pair_patch, pair_src)), shape=(n_patch, n))
-    keep = np.flatnonzero(nodes.kind[links.recv] != FACE)
+    # the system again, with every link on an inner node replaced by its leaves' own
+    # transfers (L, N): each leaf then gathers from the sources' means what reaches its own
+    # points, and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered
+    # mean counts its buried points as unlit; it lands on its visible part, as in ``solve``
+    # (a factor 1, or 0 for a leaf wholly buried)
+    gathered = sp.csr_matrix((g_ff, (pair_leaf, pair_src)), shape=(n_leaf, n))
+    keep = np.flatnonzero(~inner[links.recv])
     own = sp.csr_matrix((links.ff[keep].astype(np.float64), (links.recv[keep], links.src[keep])), shape=(n, n))
-    patch_of = nodes.patch[leaves]
-    # (a patch's gathered mean lands on its visible leaves, as in ``solve``)
-    seen = 1.0 - state.buried[leaves]
-    visible = np.bincount(patch_of, weights=nodes.area[leaves] * seen, minlength=n_patch)
-    spread = np.where(visible > 1e-12 * nodes.area[:n_patch], nodes.area[:n_patch] / np.maximum(visible, 1e-300), 0.0)
-    to_patch = sp.csr_matrix((seen * spread[patch_of], (np.arange(len(leaves)), patch_of)), shape=(len(leaves), n_patch))
+    to_leaf = sp.diags((state.buried[leaves] < 1.0).astype(np.float64)).tocsr()
     system = solved.system
-    final = LeafSystem(sp.hstack([system.push, to_patch]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
+    final = LeafSystem(sp.hstack([system.push, to_leaf]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
                        system.rho, system.emission)
     t1 = time.perf_counter()
     b, iterations, _ = solve_system(final, solved.b_leaf, method=state.settings.solver,
@@ -652,11 +653,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     solve_time = time.perf_counter() - t1
     state.timing["solve"] += solve_time
     h_leaf = final.gather(np.maximum(b, 0.0))
-    rho = state.patch_rho[patch_of].max(axis=1)
-    # a patch's noise, spread over its leaves by area
-    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[leaves] * np.sqrt(var[patch_of])
-    state.timing["transfer"] += inner
-    state.timing["gather"] += time.perf_counter() - t - inner - solve_time
+    rho = channel_max(state.patch_rho[nodes.patch[leaves]])
+    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[leaves] * np.sqrt(var)
+    state.timing["transfer"] += seconds_in_waves
+    state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
     return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated)
 
 
@@ -766,13 +766,13 @@ def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
 def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate:
     """The estimate of the output, after the final gather.
 
-    The gather evaluates every face-cluster link again on the patches below its receiver
-    and the system is solved again with those transfers: the errors of the clusters' means
-    (those links' receiver terms) are gone from the output, and the gather's own visibility
-    noise and fit residuals take their place. Source terms, links on triangles and the
-    direct light keep theirs."""
-    face = state.nodes.kind[state.links.recv] == FACE
-    receiver = np.where(face, 0.0, est.receiver)
+    The gather evaluates every link on an inner node again on the leaves below its receiver
+    and the system is solved again with those transfers: the errors of the inner nodes'
+    means (those links' receiver terms) are gone from the output, and the gather's own
+    visibility noise and fit residuals take their place. Source terms, links on leaves and
+    the direct light keep theirs."""
+    regathered = state.nodes.children[state.links.recv, 0] >= 0
+    receiver = np.where(regathered, 0.0, est.receiver)
     total = float(receiver.sum() + est.source.sum() + est.direct.sum() + gathered.noise_power.sum())
     return replace(est, receiver=receiver, relative=total / max(state.total_area * est.reference_mean, 1e-300))
 
