@@ -483,12 +483,25 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
     # (and its pseudo-inverse's rounding) is the same for the same geometry in any units
     size = nodes.radius[ids]
     size = np.where(size > 0, size, 1.0)
-    design = np.concatenate([np.ones(d.shape[:2] + (1,)), d / size[:, None, None]], axis=2)   # (U, K, 4), rank <= 3
-    fit = np.linalg.pinv(design)                                              # (U, 4, K)
+    # in-plane coordinates (u, v) along a tangent frame: the design [1 u v] has full rank,
+    # and its 3 x 3 normal equations are solved in one batch (the 4-column design in space
+    # needed a pseudo-inverse, an SVD per receiver)
+    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
+    t1 = axis - np.einsum("mc,mc->m", axis, normal)[:, None] * normal
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normal, t1)
+    uv = np.stack([np.einsum("mkc,mc->mk", d, t1), np.einsum("mkc,mc->mk", d, t2)], axis=2) / size[:, None, None]
+    design = np.concatenate([np.ones(d.shape[:2] + (1,)), uv], axis=2)                       # (U, K, 3)
+    gram = np.einsum("mkp,mkq->mpq", design, design)
+    regular = np.abs(np.linalg.det(gram)) > 1e-9 * np.einsum("mpp->m", gram) ** 3
+    fit = np.empty((len(ids), 3, d.shape[1]))
+    fit[regular] = np.linalg.solve(gram[regular], np.swapaxes(design[regular], 1, 2))
+    fit[~regular] = np.linalg.pinv(design[~regular])                      # (points on a line)
     coef = np.einsum("mpk,mk->mp", fit[inverse], values)
     resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
     dof = max(values.shape[1] - 3, 1)
-    return x0[inverse], coef[:, 0], coef[:, 1:] / size[inverse, None], np.sqrt((resid * resid).sum(axis=1) / dof)
+    grad = (coef[:, 1:2] * t1[inverse] + coef[:, 2:3] * t2[inverse]) / size[inverse, None]
+    return x0[inverse], coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
 
 
 def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray, gv: np.ndarray,
