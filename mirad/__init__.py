@@ -93,7 +93,8 @@ def solve(scene, *, quiet: bool = True, **options) -> Solution:
     sol = solve_problem(loaded, settings)
     # what the diffuse, opaque model loses of non-diffuse or transmitting BSDFs: it does not
     # shrink with refinement, so it is reported beside the estimate, not refined against
-    model = float(loaded.model_error(sol.triangle_irradiance, sol.back_irradiance))
+    model = float(loaded.model_error(sol.triangle_irradiance, sol.back_irradiance,
+                                     leaf_transmission=sol.stats.get("leaf_transmission") == "carried"))
     sol.stats["model_error"] = model
     sol.stats["total_error"] = float(sol.stats["estimated_error"]) + model
     if model > settings.tolerance:

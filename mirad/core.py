@@ -367,6 +367,33 @@ def ancestor_matrix(nodes: Nodes, leaves: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(leaves), len(nodes)))
 
 
+def transmission(state: State, leaves: np.ndarray) -> tuple[np.ndarray | None, sp.csr_matrix | None]:
+    """(tau (L, C), opposite (L, L)) of translucent leaves (scene.patch_transmittance), or
+    (None, None) when nothing transmits.
+
+    The light arriving on a leaf triangle's side leaves, diffusely, from its other side:
+    leaf l of patch q gets tau_{q'} times the mean irradiance of the opposite patch q' (the
+    area-weighted mean over q''s leaves; the two sides may be refined differently, so the
+    transfer is per triangle, which keeps per-triangle powers exact)."""
+    scene, nodes = state.scene, state.nodes
+    if not scene.diffuse_transmission:
+        return None, None
+    patch = nodes.patch[leaves]
+    opposite_patch = scene.patch_opposite[patch]
+    tau_all = scene.patch_transmittance[:, : state.channels]
+    has = opposite_patch >= 0
+    tau = np.where(has[:, None], tau_all[np.maximum(opposite_patch, 0)], 0.0)
+    # (P, L): area-weighted mean over each patch's leaves, then row l picks its opposite patch
+    area = nodes.area[leaves]
+    n_patch = len(tau_all)
+    total = np.bincount(patch, weights=area, minlength=n_patch)
+    mean = sp.csr_matrix((area / np.maximum(total[patch], 1e-300), (patch, np.arange(len(leaves)))),
+                         shape=(n_patch, len(leaves)))
+    rows = np.flatnonzero(has)
+    pick = sp.csr_matrix((np.ones(len(rows)), (rows, opposite_patch[rows])), shape=(len(leaves), n_patch))
+    return tau, (pick @ mean).tocsr()
+
+
 def solve(state: State, previous: Solved | None) -> Solved:
     """Stage solve: radiosity of the leaves for the current links, warm-started."""
     t = time.perf_counter()
@@ -375,7 +402,9 @@ def solve(state: State, previous: Solved | None) -> Solved:
     if previous is not None and previous.system.push.shape[1] == len(nodes):
         # no node made since (leaves and buried shares unchanged): the same push and pull
         push, pull = previous.system.push, previous.system.pull
+        tau, opposite = previous.system.tau, previous.system.opposite
     else:
+        tau, opposite = transmission(state, leaves)
         push = ancestor_matrix(nodes, leaves)
         # a node sends its power over its area that is not buried (inside closed geometry,
         # where the radiosity is zero and which no one sees): its leaves' power over that area
@@ -387,8 +416,10 @@ def solve(state: State, previous: Solved | None) -> Solved:
         # buried points unlit) lands on its visible leaves, times its area over the visible
         push = (sp.diags(1.0 - state.buried[leaves]) @ push @ sp.diags(scale * nodes.area)).tocsr()
     rho = state.patch_rho[nodes.patch[leaves]]
-    emission = state.patch_emission[nodes.patch[leaves]] + rho * state.direct[leaves]
-    system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, emission)
+    system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, np.zeros_like(rho), tau, opposite)
+    # the direct light of point, sun and sky emitters is scattered like any other
+    system.emission = state.patch_emission[nodes.patch[leaves]] + system.scatter(state.direct[leaves])
+    emission = system.emission
     if previous is None:
         x0 = emission.copy()
     else:
@@ -658,7 +689,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     to_leaf = sp.diags((state.buried[leaves] < 1.0).astype(np.float64)).tocsr()
     system = solved.system
     final = LeafSystem(sp.hstack([system.push, to_leaf]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
-                       system.rho, system.emission)
+                       system.rho, system.emission, system.tau, system.opposite)
     t1 = time.perf_counter()
     b, iterations, _ = solve_system(final, solved.b_leaf, method=state.settings.solver,
                                     tol=state.settings.solver_tolerance,
@@ -721,7 +752,7 @@ def amplification(state: State, solved: Solved) -> float:
     system = solved.system
     area = state.nodes.area[solved.leaves][:, None]
     emitted = state.patch_emission[state.nodes.patch[solved.leaves]]
-    first = system.emission - emitted + system.rho * system.gather(emitted)
+    first = system.emission - emitted + system.scatter(system.gather(emitted))
     total = float((area * (solved.b_leaf - emitted)).sum())
     once = float((area * first).sum())
     return max(1.0, total / once) if once > 0 else 1.0
@@ -887,7 +918,7 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
     leaves = solved.leaves
     system = solved.system
     h_leaf = gathered.irradiance + state.direct[leaves]
-    b_leaf = np.maximum(system.emission + system.rho * gathered.irradiance, 0.0)
+    b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0)
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
     err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
         (est.direct + gathered.noise_power) / nodes.area[leaves]
@@ -932,6 +963,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "settings": {k: getattr(settings, k) for k in ("tolerance", "samples_per_link", "seed", "solver")},
         "warnings": list(scene.warnings),
         "detail_leaves": 0,
+        # a leaf BSDF's diffuse transmission is carried to the other side (``transmission``)
+        "leaf_transmission": "carried" if scene.diffuse_transmission else "none",
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]

@@ -20,20 +20,37 @@ import scipy.sparse.linalg as spla
 
 @dataclass
 class LeafSystem:
-    """B = emission + rho * (push @ links @ pull @ B), arrays over leaves (L, C)."""
+    """B = emission + rho * H + tau * (opposite @ H) with H = push @ links @ pull @ B, arrays
+    over leaves (L, C).
+
+    ``tau`` (L, C) and ``opposite`` (L, L), both or neither: the transmittance of a
+    translucent leaf's other side and the area-weighted mean over that side's leaves (the
+    light a leaf transmits leaves diffusely from its other side)."""
 
     push: sp.csr_matrix
     links: sp.csr_matrix
     pull: sp.csr_matrix
     rho: np.ndarray
     emission: np.ndarray
+    tau: np.ndarray | None = None
+    opposite: sp.csr_matrix | None = None
 
     def gather(self, b: np.ndarray) -> np.ndarray:
         """Irradiance (L, C) gathered over all links for leaf radiosity b (L, C)."""
         return self.push @ (self.links @ (self.pull @ b))
 
+    def scatter(self, h: np.ndarray, channel: int | None = None) -> np.ndarray:
+        """Radiosity that irradiance h (L, C), or (L,) of one channel, sends back out:
+        reflected, and transmitted from the other side."""
+        rho = self.rho if channel is None else self.rho[:, channel]
+        out = rho * h
+        if self.tau is not None:
+            tau = self.tau if channel is None else self.tau[:, channel]
+            out = out + tau * (self.opposite @ h)
+        return out
+
     def residual(self, b: np.ndarray) -> float:
-        r = b - self.emission - self.rho * self.gather(b)
+        r = b - self.emission - self.scatter(self.gather(b))
         scale = max(np.abs(self.emission).sum(), np.abs(b).sum(), 1e-300)
         return float(np.abs(r).sum() / scale)
 
@@ -46,13 +63,15 @@ def solve_system(system: LeafSystem, x0: np.ndarray, *, method: str, tol: float,
     if method == "jacobi":
         return _jacobi(system, x0, tol, max_iterations)
     if method == "gauss-seidel":
+        if system.tau is not None:      # (transmission couples leaves across the blocks)
+            return _gmres(system, x0, tol, max_iterations)
         return _block_gauss_seidel(system, x0, tol, max_iterations)
     raise ValueError(f"unknown solver {method!r}")
 
 
 def _jacobi(system: LeafSystem, x: np.ndarray, tol: float, max_iterations: int):
     for it in range(1, max_iterations + 1):
-        new = system.emission + system.rho * system.gather(x)
+        new = system.emission + system.scatter(system.gather(x))
         change = np.abs(new - x).sum() / max(np.abs(new).sum(), 1e-300)
         x = new
         if change < tol:
@@ -65,21 +84,20 @@ def _gmres(system: LeafSystem, x0: np.ndarray, tol: float, max_iterations: int):
     out = np.empty_like(x0)
     total = 0
     for c in range(channels):
-        rho = system.rho[:, c]
         emission = system.emission[:, c]
         if not np.any(emission) and not np.any(x0[:, c]):
             out[:, c] = 0.0
             continue
 
-        def matvec(v, rho=rho):
+        def matvec(v, c=c):
             v = np.ravel(v)
-            return v - rho * system.gather(v)
+            return v - system.scatter(system.gather(v), c)
 
         # solved for the reflected part R = B - E, (I - rho K) R = rho K E: its tolerance is
         # then relative to the first bounce, not to the emission (a light a millionth of the
         # room's area, a million times brighter, once made the warm start "converged" with
         # no reflected light at all)
-        first = rho * system.gather(emission)
+        first = system.scatter(system.gather(emission), c)
         if not np.any(first):
             out[:, c] = emission
             continue

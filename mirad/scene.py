@@ -255,7 +255,7 @@ class Scene:
         return h.hexdigest()[:16]
 
     def model_error(self, irradiance: np.ndarray | None = None,
-                    back_irradiance: np.ndarray | None = None) -> float:
+                    back_irradiance: np.ndarray | None = None, *, leaf_transmission: bool = False) -> float:
         """Relative error of the diffuse, opaque model of the scene's non-diffuse BSDFs (first order).
 
         The power Mitsuba sends through a surface (transmittance tau) or reflects directionally
@@ -273,6 +273,9 @@ class Scene:
             a prior before solving
         back_irradiance : (T, C) float, W/m^2, optional
             back-side irradiance; default: as the front where given, else uniform
+        leaf_transmission : bool, default False
+            the solver carried the diffuse transmission of ``leaf`` BSDFs to the other side
+            (the hierarchical core does): that light is not lost
 
         Returns
         -------
@@ -283,7 +286,9 @@ class Scene:
         a = self.tri_area[:, None]
         back = np.zeros(self.triangle_count, bool)
         back[self.back_triangles] = True
-        lost = a * (h * (self.tri_transmittance + self.tri_specular) + hb * self.back_transmittance * back[:, None])
+        kept = self.tri_leaf[:, None] if leaf_transmission else np.zeros((self.triangle_count, 1), bool)
+        tau, tau_back = np.where(kept, 0.0, self.tri_transmittance), np.where(kept, 0.0, self.back_transmittance)
+        lost = a * (h * (tau + self.tri_specular) + hb * tau_back * back[:, None])
         reflected = a * (h * self.tri_rho + hb * self.back_rho)
         total = reflected.sum(axis=0)
         ratio = np.divide(lost.sum(axis=0), total, out=np.zeros_like(total), where=total > 0)
