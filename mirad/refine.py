@@ -257,7 +257,12 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
     if len(vol):
         rv, sv = r[vol], s[vol]
         bound = sphere_form_factor_bound(nodes.center[rv], nodes.radius[rv], nodes.center[sv], nodes.radius[sv])
-        receiver[vol] = scale[vol] * state.b_max_below[sv] * bound
+        # a receiver's form factors sum to at most 1, so the bounds of its cluster links, each
+        # up to 1 near the cluster, are shared out: their sum stays within min(1, sum of the
+        # bounds) (opening a cluster into two children near the receiver no longer doubles it)
+        total = np.bincount(rv, weights=bound, minlength=len(nodes))[rv]
+        share = np.where(total > 1.0, 1.0 / np.maximum(total, 1e-300), 1.0)
+        receiver[vol] = scale[vol] * state.b_max_below[sv] * bound * share
         source[vol] = 0.0
         # a cluster holding an emitter opens for the receivers near it (within its bounding
         # sphere's diameter, where the sphere says little about the light), and elsewhere is
