@@ -9,12 +9,12 @@ Stages of ``solve_hierarchical`` (each timed in ``stats["seconds"]``):
     direct      point/spot/directional/environment light on each leaf (emitters.py)
     solve       B = E + rho (push F pull) B on the leaves (linear.py), warm-started
     estimate    summed link power errors over A_total * mean(H) (refine.ERRORS_OF)
-    gather      after the last solve: each face-cluster link descends its receiver's tree
-                until the light it brings is linear and unshadowed over a node (then the
-                patches below take the fit) or reaches the input patches (which evaluate
-                it at their own points and rays) (``final_gather``); the fits' residuals
-                and the visibility noise replace the face clusters' mean errors in the
-                estimate (``output_estimate``)
+    gather      after the last solve: each link on an inner node descends its receiver's
+                tree until the light it brings is linear over a node (then the leaves
+                below take the fit) or reaches the leaves (which evaluate it at their own
+                points and rays) (``final_gather``); the fits' residuals and the
+                visibility noise replace the inner nodes' mean errors in the estimate
+                (``output_estimate``)
 
 Multigridding: after each solve the link errors are recomputed from the new radiosity;
 eps is set so that the links under it hold at most half the error budget
@@ -214,15 +214,7 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         changed = True
         # --- split what must split: triangle leaves get children first ------------------
         need = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
-        need = need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)]
-        n_before = len(nodes)
-        split_triangles(nodes, need, state.surface)
-        if len(nodes) > n_before:
-            _grow_direct(state, n_before)
-            # (children of a triangle none of whose points was buried are not either, to
-            # the resolution of its SOURCE_POINTS points: they are not traced)
-            grown = np.arange(n_before, len(nodes))
-            _measure_buried(state, grown[state.buried[nodes.parent[grown]] > 0])
+        _split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
         # --- children links ----------------------------------------------------------------
         s_idx = np.flatnonzero(dec.split_src)
         kids = nodes.children[part.src[s_idx]]
@@ -250,6 +242,20 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         state.links = kept.extend(new)
     state.timing["refine"] += time.perf_counter() - t0
     return changed, capped
+
+
+def _split_leaves(state: State, ids: np.ndarray) -> None:
+    """Split triangle leaves ids (nodes.split_triangles) and give the children their
+    per-node state: direct-light slots, and buried shares where the parent had any
+    (children of a triangle none of whose points was buried are not either, to the
+    resolution of its SOURCE_POINTS points: they are not traced)."""
+    nodes = state.nodes
+    n_before = len(nodes)
+    split_triangles(nodes, ids, state.surface)
+    if len(nodes) > n_before:
+        _grow_direct(state, n_before)
+        grown = np.arange(n_before, len(nodes))
+        _measure_buried(state, grown[state.buried[nodes.parent[grown]] > 0])
 
 
 def _measure_buried(state: State, ids: np.ndarray) -> None:
@@ -297,11 +303,14 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
 
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     """(L,) expected absolute error of each leaf's direct light as power, W."""
-    weight = state.patch_rho[state.nodes.patch[leaves]] if ERRORS_OF == "radiosity" else 1.0
-    sampled = EXPECTED_ABS * (weight * state.direct_error[leaves]).max(axis=1)
+    if ERRORS_OF == "radiosity":
+        rho = state.patch_rho[state.nodes.patch[leaves]]
+        sampled, weight = EXPECTED_ABS * channel_max(rho * state.direct_error[leaves]), channel_max(rho)
+    else:
+        sampled, weight = EXPECTED_ABS * channel_max(state.direct_error[leaves]), 1.0
     # a point or spot light's feature smaller than one of the samples' strata may be missed
     # altogether (zero variance, zero estimate): at most the leaf's bound over the strata
-    missed = np.max(np.atleast_2d(weight), axis=-1) * state.direct_bound[leaves] / np.maximum(state.direct_samples[leaves], 1)
+    missed = weight * state.direct_bound[leaves] / np.maximum(state.direct_samples[leaves], 1)
     return state.nodes.area[leaves] * np.maximum(sampled, missed)
 
 
@@ -317,10 +326,10 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
 
 
 def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
-    """Split the triangle leaves where what their points may miss of point and spot lights
-    still exceeds eps (W) at the most points (MAX_DIRECT_SAMPLES): a narrow spot's cone or a point light's fall-off on a large
-    triangle is then resolved by smaller ones, which get their own points (their links stay
-    on the parent and reach them by the push)."""
+    """Split the triangle leaves that a point or spot light reaches and whose direct-light
+    error still exceeds eps (W) at the most points (MAX_DIRECT_SAMPLES): a narrow spot's
+    cone or a point light's fall-off on a large triangle is then resolved by smaller ones,
+    which get their own points (their links stay on the parent and reach them by the push)."""
     if not state.scene.light_emitters:
         return False
     nodes = state.nodes
@@ -330,14 +339,8 @@ def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_bound[leaves] > 0)
                    & (state.direct_samples[leaves] >= MAX_DIRECT_SAMPLES) & (nodes.kind[leaves] == TRIANGLE)]
     stuck = stuck[nodes.splittable(state.min_area)[stuck]]
-    if not len(stuck):
-        return False
-    n_before = len(nodes)
-    split_triangles(nodes, stuck, state.surface)
-    _grow_direct(state, n_before)
-    grown = np.arange(n_before, len(nodes))
-    _measure_buried(state, grown[state.buried[nodes.parent[grown]] > 0])
-    return True
+    _split_leaves(state, stuck)
+    return len(stuck) > 0
 
 
 @dataclass

@@ -240,8 +240,7 @@ def planar_groups(surf: Surface) -> np.ndarray:
     # heights of the centroids along each normal group's mean normal (area-weighted)
     area = _tri_area(surf.verts)
     count = int(label.max()) + 1 if p else 0
-    mean = np.zeros((count, 3))
-    np.add.at(mean, label, n * area[:, None])
+    mean = group_sum(label, n, count, weights=area)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
     height = np.einsum("pc,pc->p", mean[label], surf.verts.mean(axis=1))
     label = _chains(label, height, PLANE_OFFSET_TOL * surf.diagonal)
