@@ -33,7 +33,8 @@ import scipy.sparse as sp
 from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
-from .nodes import FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes, split_triangles
+from .nodes import (FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes,
+                    split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, link_values, power_errors, refinement_threshold)
 from .scene import Scene
@@ -48,6 +49,10 @@ MAX_DIRECT_SAMPLES = 1024
 SOURCE_DEVIATION = "measured"
 #: Relative residual of a refinement pass's solve, as a share of the error tolerance.
 PASS_SOLVE_SHARE = 0.01
+#: Points measuring the buried share of a triangle node that is partly buried.
+BURIED_POINTS = 1024
+#: Nodes per batch of those points (bounds their memory: 24 kB a node).
+BURIED_CHUNK = 4096
 #: Bytes a link costs at the peak of a solve (its arrays, the sparse matrix, wave temporaries).
 LINK_PEAK_BYTES = 120
 
@@ -259,13 +264,26 @@ def _split_leaves(state: State, ids: np.ndarray) -> None:
 
 
 def _measure_buried(state: State, ids: np.ndarray) -> None:
-    """Buried share of triangle nodes ids, from their source points (transfer.buried_fraction)."""
+    """Buried share of triangle nodes ids (transfer.buried_fraction): from their source
+    points, then, where some but not all of those are buried, from BURIED_POINTS points.
+
+    A node sends its power over its visible area, so an error d in its buried share b is an
+    error d / (1 - b) in the radiosity it sends: SOURCE_POINTS points (d up to 1/16) are
+    too few for that, while the rays that carry its light sample the source afresh."""
     grown = len(state.nodes) - len(state.buried)
     if grown > 0:
         state.buried = np.concatenate([state.buried, np.zeros(grown)])
     if len(ids):
         nodes = state.nodes
-        state.buried[ids] = buried_fraction(state.scene.mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset)
+        mi_scene = state.scene.mi_scene
+        share = buried_fraction(mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset)
+        partial = ids[(share > 0) & (share < 1)]
+        share[(share > 0) & (share < 1)] = 0.0
+        state.buried[ids] = share
+        for a in range(0, len(partial), BURIED_CHUNK):
+            part = partial[a:a + BURIED_CHUNK]
+            pts, nrm = triangle_samples(nodes, part, BURIED_POINTS, state.settings.seed)
+            state.buried[part] = buried_fraction(mi_scene, pts, nrm, state.offset)
 
 
 def _grow_direct(state: State, n_before: int) -> None:
@@ -459,8 +477,10 @@ class Gathered:
 
 #: Most (receiver, source) pairs per final-gather wave (bounds its memory: ~100 B a pair).
 GATHER_CHUNK = 1 << 18
-#: Shadow rays per quadrature point in the final gather.
+#: Shadow rays per quadrature point in the final gather, and the factor by which a pair
+#: whose visibility noise exceeds its share of the tolerance gets more (up to GATHER_MAX_RAYS).
 GATHER_RAYS = 4
+GATHER_MAX_RAYS = SOURCE_POINTS
 #: Share of the tolerance that interpolating a smooth link over a face cluster may cost,
 #: relative to the light that link brings (see ``smooth_links``).
 GATHER_SHARE = 0.25
@@ -578,6 +598,21 @@ def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
     return (GATHER_SHARE * tolerance) ** 2 * np.maximum(h_recv * ff * b_src, 0.0)
 
 
+def _leaf_positions_below(below: sp.csr_matrix, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (in the leaf list) of the leaves below nodes ids, and which id each is under."""
+    start = below.indptr[ids]
+    count = below.indptr[ids + 1] - start
+    owner = np.repeat(np.arange(len(ids)), count)
+    offset = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+    return below.indices[np.repeat(start, count) + offset], owner
+
+
+def _leaves_below(below: sp.csr_matrix, leaves: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Node ids of the leaves below nodes ids, and which id each is under."""
+    position, owner = _leaf_positions_below(below, ids)
+    return leaves[position], owner
+
+
 def final_gather(state: State, solved: Solved) -> Gathered:
     """Stage gather: the light of links on inner nodes (face clusters, and triangles split
     for other links' sake), gathered again on each leaf from the sources' solved radiosity.
@@ -613,9 +648,19 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     pairs = [(np.zeros(0, np.int64),) * 3]   # (leaf node, source, rays) to gather at the leaf's points
     seconds_in_waves = 0.0
     evaluated = 0
+    n_below = np.diff(below.indptr)
     while len(recv):
         descend = inner[recv]
-        pairs.append((recv[~descend], src[~descend], rays[~descend]))
+        # a fit of a partly shadowed link costs a ray to each of the source's points from
+        # each of the node's points; where the leaves below cost no more with their own
+        # GATHER_RAYS per point, they take the link directly
+        whole = rays > 1
+        direct = descend & whole & (n_below[recv] * GATHER_RAYS <= SOURCE_POINTS)
+        if direct.any():
+            leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
+            pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner]))
+        descend &= ~direct
+        pairs.append((recv[~inner[recv]], src[~inner[recv]], rays[~inner[recv]]))
         recv, src, rays = recv[descend], src[descend], rays[descend]
         if not len(recv):
             break
@@ -626,11 +671,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         smooth, x0, a, grad, rms = smooth_links(nodes, recv, src, g, gv, b_src[src], h_node[recv],
                                                 state.settings.tolerance, whole)
         ok = np.flatnonzero(smooth)
-        start = below.indptr[recv[ok]]
-        count = below.indptr[recv[ok] + 1] - start
-        owner = np.repeat(np.arange(len(ok)), count)
-        offset = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
-        leaf = below.indices[np.repeat(start, count) + offset]
+        leaf, owner = _leaf_positions_below(below, recv[ok])
         k = ok[owner]
         # (a leaf's buried part, inside closed geometry, gets no light)
         value = (a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])) * (1.0 - state.buried[leaves[leaf]])
@@ -645,11 +686,14 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     seconds_in_waves += seconds
     # pairs whose few rays disagreed more than their share of the tolerance allows are
-    # evaluated again with a ray to each of the source's points (a quadrature, not a sample)
-    noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
-                                                     state.settings.tolerance)) & (pair_rays < SOURCE_POINTS))
-    if len(noisy):
-        pair_rays[noisy] = SOURCE_POINTS
+    # evaluated again with four times the rays, up to a ray to each of the source's points
+    # (a quadrature, not a sample)
+    while True:
+        noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
+                                                         state.settings.tolerance)) & (pair_rays < GATHER_MAX_RAYS))
+        if not len(noisy):
+            break
+        pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
         g_ff[noisy], g_var[noisy], seconds = _evaluate_pairs(state, solved, pair_node[noisy], pair_src[noisy],
                                                              pair_rays[noisy])
         seconds_in_waves += seconds

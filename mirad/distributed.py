@@ -182,15 +182,20 @@ def _upload_clusters(arrays: dict | None):
 
 
 #: The ``nodes.Nodes`` fields that ``transfer.NodeBuffers.upload`` reads.
-NODE_FIELDS = ("kind", "poly", "normal", "fill", "area", "recv_pts", "recv_nrm", "src_pts", "src_nrm")
+NODE_FIELDS = ("kind", "poly", "normal", "fill", "area", "recv_pts", "recv_nrm", "children", "curve")
 
 
 def node_arrays(nodes) -> dict:
     """The arrays of a ``nodes.Nodes`` (N nodes) that the hierarchical core's transfer waves
     read, as ``NodeBuffers.upload`` converts them: float32 (bitwise what it uploads), ``kind``
     uint32, ``size`` N. Shapes as in ``Nodes``: poly (N, 4, 3), recv_pts (N, K, 3), ..."""
-    out = {name: np.ascontiguousarray(getattr(nodes, name), np.float32) for name in NODE_FIELDS if name != "kind"}
+    out = {name: np.ascontiguousarray(getattr(nodes, name), np.float32) for name in NODE_FIELDS
+           if name not in ("kind", "children")}
     out["kind"] = np.ascontiguousarray(nodes.kind, np.uint32)
+    # (a triangle's own id in place of its children: rows sent once stay valid after splits)
+    from .nodes import cluster_children
+
+    out["children"] = cluster_children(nodes.kind, nodes.children)
     out["size"] = len(nodes)
     return out
 

@@ -78,7 +78,9 @@ class Nodes:
     depth : (N,) int16            triangles: subdivision depth below their patch
     recv_pts, recv_nrm : (N, K, 3) float32   receiver points and their normals
     recv_w : (N, K) float32       their quadrature weights (sum 1)
-    src_pts, src_nrm : (N, S, 3) float32     shadow-ray targets and their normals
+    src_pts, src_nrm : (N, S, 3) float32     stratified points on the node (buried-share test)
+    curve : (N, 7) float          triangles: their patch's true-surface centre (3), axis (3) and
+                                  radius (1; 0 for flat patches, see ``project``); clusters 0
     """
 
     kind: np.ndarray
@@ -101,6 +103,7 @@ class Nodes:
     recv_w: np.ndarray
     src_pts: np.ndarray
     src_nrm: np.ndarray
+    curve: np.ndarray
 
     def __len__(self) -> int:
         return len(self.kind)
@@ -420,7 +423,9 @@ def _describe(surf, kind, parent, children, lo, hi, order, patch_area) -> Nodes:
                   recv_nrm=np.zeros((n, RECEIVER_POINTS, 3), np.float32),
                   recv_w=np.zeros((n, RECEIVER_POINTS), np.float32),
                   src_pts=np.zeros((n, SOURCE_POINTS, 3), np.float32),
-                  src_nrm=np.zeros((n, SOURCE_POINTS, 3), np.float32))
+                  src_nrm=np.zeros((n, SOURCE_POINTS, 3), np.float32),
+                  curve=np.zeros((n, 7)))
+    nodes.curve[:p] = np.concatenate([surf.curve[0], surf.curve[1], np.asarray(surf.curve[2])[:, None]], axis=1)
     _triangle_points(nodes, np.arange(p), surf.verts, surf.normal, list(surf.curve), surf.seed)
     if len(cl):
         _cluster_points(nodes, cl, surf, order, cum, patch_area)
@@ -498,6 +503,17 @@ def _triangle_points(nodes: Nodes, ids: np.ndarray, verts: np.ndarray, normal: n
     nodes.src_nrm[ids] = sn
 
 
+def triangle_samples(nodes: Nodes, ids: np.ndarray, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` stratified points (shifted Hammersley) on triangle nodes ids and their
+    normals, each (M, count, 3), on the true surface of curved patches (``project``)."""
+    v = nodes.poly[ids, :3]
+    u, w = _hammersley(count, ids.astype(np.int64) + (seed << 20), 0x0B0E)
+    pts = _warp(v[:, 0][:, None], v[:, 1][:, None], v[:, 2][:, None], u, w)
+    nrm = np.broadcast_to(nodes.normal[ids][:, None], pts.shape)
+    c = nodes.curve[ids]
+    return project(pts, nrm, c[:, :3], c[:, 3:6], c[:, 6])
+
+
 def _cluster_points(nodes: Nodes, ids: np.ndarray, surf: Surface, order, cum, patch_area) -> None:
     """Area-stratified points on the patches of clusters ids (receivers and sources)."""
     for count, pts_name, nrm_name, w_name, salt in ((RECEIVER_POINTS, "recv_pts", "recv_nrm", "recv_w", 0x7A11),
@@ -524,6 +540,13 @@ def _cluster_points(nodes: Nodes, ids: np.ndarray, surf: Surface, order, cum, pa
         getattr(nodes, nrm_name)[ids] = nn.reshape(shape)
         if w_name:
             getattr(nodes, w_name)[ids] = 1.0 / count
+
+
+def cluster_children(kind: np.ndarray, children: np.ndarray) -> np.ndarray:
+    """(N, 2) uint32: the two children of each cluster, and each triangle's own id (a
+    triangle's children, made by splits, do not matter to where its points lie)."""
+    own = np.arange(len(kind), dtype=np.int64)[:, None]
+    return np.where(np.asarray(kind)[:, None] != TRIANGLE, np.asarray(children)[:, :2], own).astype(np.uint32)
 
 
 def split_triangles(nodes: Nodes, ids: np.ndarray, surf: Surface) -> np.ndarray:
@@ -561,7 +584,7 @@ def split_triangles(nodes: Nodes, ids: np.ndarray, surf: Surface) -> np.ndarray:
                 recv_nrm=np.zeros((m, RECEIVER_POINTS, 3), np.float32),
                 recv_w=np.zeros((m, RECEIVER_POINTS), np.float32),
                 src_pts=np.zeros((m, SOURCE_POINTS, 3), np.float32),
-                src_nrm=np.zeros((m, SOURCE_POINTS, 3), np.float32))
+                src_nrm=np.zeros((m, SOURCE_POINTS, 3), np.float32), curve=nodes.curve[owner])
     nodes.append(kid)
     _triangle_points(nodes, new_ids, new_verts, nodes.normal[new_ids], [c[patch] for c in surf.curve], surf.seed)
     return parents

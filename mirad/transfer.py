@@ -8,8 +8,8 @@ A link r <- s is evaluated at the receiver's fixed quadrature points x_i (nodes.
 * volume clusters: a Monte Carlo estimate over the rays' target points, each with the
   bounded point-to-point kernel cos_x cos_y A_s / (pi r^2 + A_s / S).
 
-Visibility is only sampled: R shadow rays from each x_i to the source's stratified points
-(``mi.Scene.ray_test``); v_i is the kernel-weighted fraction of them that arrive. A link's
+Visibility is only sampled: R shadow rays from each x_i to the link's own stratified points
+on the source (``source_point``, ``mi.Scene.ray_test``); v_i is the kernel-weighted fraction of them that arrive. A link's
 transfer is F = sum_i w_i G_i v_i. The wave returns per-point arrays (M, K) to numpy,
 where refine.py turns them into errors.
 """
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .nodes import RECEIVER_POINTS, SOURCE_POINTS, VOLUME, Nodes
+from .nodes import RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children
 from .arrays import MAX_LANES, to_float, to_uint, to_vector3
-from .visibility import hash_u32
+from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -44,17 +44,33 @@ class NodeBuffers:
     kind: object         # mi.UInt32 (N,)
     recv_pts: object     # mi.Vector3f (N * K,)
     recv_nrm: object
-    src_pts: object      # mi.Vector3f (N * S,)
-    src_nrm: object
+    child: tuple         # two mi.UInt32 (N,): a cluster's children (a triangle: itself)
+    curve: tuple         # centre, axis (mi.Vector3f) and radius (mi.Float) of a triangle's true surface
+    cluster_depth: int   # most cluster levels above a triangle
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
         def points(a):          # (N, ...) -> every point's (x, y, z), node-major
             return to_vector3(np.asarray(a).reshape(-1, 3))
 
+        child = cluster_children(nodes.kind, nodes.children)
+        curve = np.asarray(nodes.curve)
         return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
-                   to_float(nodes.fill), to_float(nodes.area), mi.UInt32(nodes.kind.astype(np.uint32)),
-                   points(nodes.recv_pts), points(nodes.recv_nrm), points(nodes.src_pts), points(nodes.src_nrm))
+                   to_float(nodes.fill), to_float(nodes.area), mi.UInt32(np.asarray(nodes.kind, np.uint32)),
+                   points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
+                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
+                   cluster_depth(nodes.kind, child))
+
+
+def cluster_depth(kind: np.ndarray, child: np.ndarray) -> int:
+    """Most cluster levels between any node and the triangles below it (``cluster_children``)."""
+    depth = np.zeros(len(kind), np.int64)
+    clusters = np.flatnonzero(np.asarray(kind) != TRIANGLE)
+    while True:
+        new = 1 + np.maximum(depth[child[clusters, 0]], depth[child[clusters, 1]])
+        if np.array_equal(new, depth[clusters]):
+            return int(depth.max())
+        depth[clusters] = new
 
 
 @dataclass
@@ -166,10 +182,10 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
 
     # --- shadow ray to one of the source's stratified points -------------------------------
     key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
-    step = 2 * (r_count // 2) + 1 if r_count < SOURCE_POINTS else 1
-    t = (key + i * 7 + j * step) % SOURCE_POINTS
-    y = dr.gather(mi.Vector3f, buf.src_pts, s * SOURCE_POINTS + t)
-    ny = dr.gather(mi.Vector3f, buf.src_nrm, s * SOURCE_POINTS + t)
+    pattern = pattern_size(r_count)
+    step = 2 * (r_count // 2) + 1 if r_count < pattern else 1
+    t = (key + i * 7 + j * step) % pattern
+    y, ny = source_point(buf, s, t, pattern, key)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -204,6 +220,55 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     gv_point = g_e * vis_point + g_vol_v / r_count
     return (g_out.astype(np.float32), gv_link.astype(np.float32), gv_point.astype(np.float32),
             int(round(float(n_traced[0]))))
+
+
+def pattern_size(rays_per_point: int) -> int:
+    """Points in the set a link's rays aim at: SOURCE_POINTS, or one per ray of a point."""
+    return max(SOURCE_POINTS, int(rays_per_point))
+
+
+def source_point(buf: NodeBuffers, s, t, pattern: int, key):
+    """Point t (of ``pattern``) on source nodes s and its normal (mi.Vector3f each) for
+    the link whose hash is ``key``.
+
+    Each link draws its own stratified set: a Hammersley set shifted per link (every
+    receiver point of a link aims at the same ``pattern`` points, so a ray to each of
+    them is a quadrature of the source that varies smoothly over the receiver). A fixed set
+    per node would be one quadrature shared by all of the node's links: where part of a
+    large source is hidden, its error would be the same on every receiver, a bias that no
+    number of receivers averages out. On a cluster, u picks one of its triangles with
+    probability in proportion to area, descending the tree (along the tree's order, so
+    the set stays stratified over the cluster); a hash of (link, t) places the point on it."""
+    u, v = shifted_hammersley(t, pattern, key)
+    node = mi.UInt32(s)
+    on_triangle = dr.gather(mi.UInt32, buf.kind, node) == TRIANGLE
+
+    def descend(node, left):
+        c0 = dr.gather(mi.UInt32, buf.child[0], node)
+        c1 = dr.gather(mi.UInt32, buf.child[1], node)
+        a0 = dr.gather(mi.Float, buf.area, c0)
+        share = a0 / dr.maximum(a0 + dr.gather(mi.Float, buf.area, c1), _TINY)
+        first = left < share
+        nxt = dr.select(first, left / dr.maximum(share, _TINY), (left - share) / dr.maximum(1.0 - share, _TINY))
+        return dr.select(first, c0, c1), dr.clip(nxt, 0.0, 1.0 - 2 ** -24)
+
+    node, _ = dr.while_loop(state=(node, mi.Float(u)),
+                            cond=lambda node, left: dr.gather(mi.UInt32, buf.kind, node) != TRIANGLE, body=descend)
+    w = to_unit(hash_u32(key ^ hash_u32(t + 0x2545F491)))
+    y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), dr.select(on_triangle, u, w), v)
+    n = dr.gather(mi.Vector3f, buf.normal, node)
+    # points of tessellated spheres and cylinders on the true surface (nodes.project)
+    radius = dr.gather(mi.Float, buf.curve[2], node)
+    center = dr.gather(mi.Vector3f, buf.curve[0], node)
+    axis = dr.gather(mi.Vector3f, buf.curve[1], node)
+    d = y - center
+    radial = d - axis * dr.dot(d, axis)
+    rlen = dr.norm(radial)
+    curved = (radius > 0) & (rlen > 0)
+    direction = radial / dr.maximum(rlen, _TINY)
+    y = dr.select(curved, y + direction * (radius - rlen), y)
+    n = dr.select(curved, dr.select(dr.dot(direction, n) < 0, -direction, direction), n)
+    return y, n
 
 
 def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:

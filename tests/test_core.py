@@ -166,15 +166,18 @@ def test_a_floor_running_under_a_box_sends_the_light_of_its_visible_part():
         p = v[0] + u[:, :1] * (v[1] - v[0]) + u[:, 1:] * (v[2] - v[0])
         under = np.mean((p[:, 0] > 0) & (p[:, 1] > 0))
         assert abs(state.buried[t] - under) <= 0.1, (state.buried[t], under)
-    a = mirad.solve(full, tolerance=tol, seed=0, **HIER)
-    b = mirad.solve(hole, tolerance=tol, seed=0, **HIER)
     # the box's triangles on its sides that face the floor (without the buried share they
-    # read 17-29 % low: the floor's light was spread over the part under the box too)
+    # read 17-29 % low: the floor's light was spread over the part under the box too),
+    # each the mean of four seeds: one solve's sampling noise on one of these small
+    # triangles is 1-6 % at this tolerance (the estimate bounds the error over the whole
+    # area), and each link samples its source afresh
     box_a = np.flatnonzero(full.tri_shape == full.shape_index("box"))
     box_b = np.flatnonzero(hole.tri_shape == hole.shape_index("box"))
     n = full.tri_normal[box_a]
     side = (n[:, 0] < -0.5) | (n[:, 1] < -0.5)
-    ratio = a.triangle_radiosity[box_a[side]] / b.triangle_radiosity[box_b[side]]
+    a = np.mean([mirad.solve(full, tolerance=tol, seed=s, **HIER).triangle_radiosity[box_a[side]] for s in range(4)], 0)
+    b = np.mean([mirad.solve(hole, tolerance=tol, seed=s, **HIER).triangle_radiosity[box_b[side]] for s in range(4)], 0)
+    ratio = a / b
     assert np.all(np.abs(ratio - 1) < tol), ratio
 
 
