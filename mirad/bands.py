@@ -164,7 +164,8 @@ def _cell(value) -> str:
 def _check_header(source: str, header: list) -> None:
     missing = [c for c in ("band", "id") if c not in header]
     if missing:
-        raise BandTableError(f"band table {source!r} lacks column(s) {', '.join(missing)} (its header is "
+        hint = " (a shape's or emitter's id goes in column 'id')" if "id" in missing and "shape" in header else ""
+        raise BandTableError(f"band table {source!r} lacks column(s) {', '.join(missing)}{hint} (its header is "
                              f"{','.join(header)}); the header names band, id and some of "
                              f"{', '.join(VALUE_COLUMNS)}")
     unknown = [c for c in header if c not in BAND_COLUMNS]
@@ -191,7 +192,7 @@ def _table(records: list, lines: list, source: str) -> BandTable:
         if not band[k]:
             raise BandTableError(f"{where}: the band is empty; name the band of every row (e.g. PAR)")
         if not _BAND_NAME.match(band[k]):
-            raise BandTableError(f"{where}: band name {band[k]!r} must start with a letter or digit and hold only "
+            raise BandTableError(f"{where}: band name {str(band[k])!r} must start with a letter or digit and hold only "
                                  "letters, digits and _ . + - (it becomes a column name, e.g. radiosity_PAR); "
                                  "rename it")
         if not ids[k]:
