@@ -428,3 +428,27 @@ def test_cli_refusal_is_one_line_with_a_non_zero_exit(tmp_path):
                       "0.45 = 1.05 > 1 breaks energy conservation; lower them so that reflectance + transmittance "
                       "<= 1 (the rest is absorbed)"]
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_the_table_in_docs_bands_md_applies_as_documented(tmp_path):
+    """The example table of docs/bands.md on a scene with its ids: a leaf shape, soil, a sun and a sky."""
+    from conftest import ROOT
+
+    text = (ROOT / "docs" / "bands.md").read_text()
+    block = text.split("```csv\n", 1)[1].split("```", 1)[0]
+    scene = load({"type": "scene",
+                  "leaves": {"type": "rectangle", "to_world": T().translate([0, 0, 0.5]).scale(0.3),
+                             "bsdf": {"type": "twosided", "allow_transmission": True,
+                                      "front": leaf(0.1, 0.1), "back": leaf(0.1, 0.1)}},
+                  "soil": {"type": "rectangle", "bsdf": {"type": "diffuse"}},
+                  "sun": {"type": "directional", "direction": [0, 0, -1]},
+                  "sky": {"type": "constant", "radiance": 1.0}})
+    banded = mirad.with_bands(scene, _write(tmp_path, block))
+    assert banded.band_names == ["PAR", "NIR"]
+    leaves = banded.tri_shape == banded.shape_index("leaves")
+    np.testing.assert_array_equal(banded.tri_rho[leaves][0], [0.08, 0.45])
+    np.testing.assert_array_equal(banded.back_rho[leaves][0], [0.10, 0.40])
+    np.testing.assert_array_equal(banded.tri_transmittance[leaves][0], [0.05, 0.45])
+    np.testing.assert_array_equal(banded.tri_rho[~leaves][0], [0.10, 0.30])
+    np.testing.assert_array_equal(banded.tri_transmittance[~leaves], 0.0)
+    np.testing.assert_array_equal(banded.light_band_scale, [[400, 350], [40, 25]])
