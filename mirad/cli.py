@@ -251,8 +251,10 @@ def _solution(args, defaults=None, scene=None):
         saved = mirad.load_solution(args.solution)
         solved_in = saved.stats.get("bands")
         if solved_in and not scene.band_names:
-            raise SolutionMismatch(f"solution '{args.solution}' was solved in bands {', '.join(solved_in)}; give "
-                                   "the band table it was solved with (--bands TABLE.csv)")
+            fix = ("give the band table it was solved with (--bands TABLE.csv)" if hasattr(args, "bands") else
+                   "render shows RGB radiance; write its bands with 'mirad export --bands TABLE.csv' (tables, "
+                   "lightmaps) instead")
+            raise SolutionMismatch(f"solution '{args.solution}' was solved in bands {', '.join(solved_in)}; {fix}")
         if scene.band_names and not solved_in:
             raise SolutionMismatch(f"solution '{args.solution}' was solved in RGB, not in bands; drop --bands, or "
                                    "solve again with --bands")
