@@ -187,6 +187,33 @@ def test_rgb_solve_of_a_grey_scene_is_the_one_band_solve_of_its_values():
     np.testing.assert_allclose(b.back_radiosity[:, 0], a.back_radiosity[:, 0], rtol=1e-6)
 
 
+def test_the_rgb_channels_as_three_bands_give_the_rgb_solve():
+    """An RGB scene (coloured leaf, floor, lamp and sun) and the band table that holds its own values
+    per channel (each emitter's factor its channel over its RGB mean): the same links and rays,
+    and the same radiosity to float rounding (measured 4e-7 on scenes/plant-canopy, 2,300
+    triangles)."""
+    rgb = lambda v: {"type": "rgb", "value": v}                                       # noqa: E731
+    front, back, tau = [0.1, 0.3, 0.05], [0.2, 0.25, 0.1], [0.05, 0.2, 0.4]
+    floor, lamp, sun = [0.3, 0.2, 0.1], np.array([1.0, 0.8, 0.5]), np.array([2.0, 1.5, 1.0])
+    d = garden()
+    d["blade"]["bsdf"]["front"], d["blade"]["bsdf"]["back"] = leaf(rgb(front), rgb(tau)), leaf(rgb(back), rgb(tau))
+    d["floor"]["bsdf"]["reflectance"] = rgb(floor)
+    d["lamp"]["emitter"]["radiance"], d["sun"]["irradiance"] = rgb(lamp.tolist()), rgb(sun.tolist())
+    scene = load(d)
+    rows = []
+    for c, band in enumerate("rgb"):
+        rows += [dict(band=band, id="blade", reflectance=front[c], back_reflectance=back[c], transmittance=tau[c]),
+                 dict(band=band, id="floor", reflectance=floor[c]),
+                 dict(band=band, id="lamp", reflectance=0.0, scale=lamp[c] / lamp.mean()),
+                 dict(band=band, id="sun", scale=sun[c] / sun.mean())]
+    a = mirad.solve(scene, tolerance=0.02, core="hierarchical")
+    b = mirad.solve(mirad.with_bands(scene, rows), tolerance=0.02, core="hierarchical")
+    assert (a.stats["links"], a.stats["rays"]) == (b.stats["links"], b.stats["rays"])
+    for x, y in ((a.triangle_radiosity, b.triangle_radiosity), (a.back_radiosity, b.back_radiosity),
+                 (a.triangle_irradiance, b.triangle_irradiance)):
+        np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7 * float(x.max()))
+
+
 # ------------------------------------------------------------------------------------------
 # Energy, band by band
 # ------------------------------------------------------------------------------------------
