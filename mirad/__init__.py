@@ -10,15 +10,17 @@ from __future__ import annotations
 import warnings
 
 from . import _runtime  # noqa: F401  (must run before mitsuba is imported)
-from .errors import (EnvironmentProblem, MiradError, OutputError, SceneError, SettingsError,
+from .errors import (BandTableError, EnvironmentProblem, MiradError, OutputError, SceneError, SettingsError,
                      SolutionMismatch)
 from .scene import Scene, load_scene
+from .bands import read_band_table, with_bands
 from .options import check_render, default
 from .settings import Settings, make_settings
 from .solution import Solution, load_solution
 
-__all__ = ["load_scene", "solve", "render", "load_solution", "Scene", "Solution", "Settings", "MiradError",
-           "SceneError", "SettingsError", "EnvironmentProblem", "SolutionMismatch", "OutputError"]
+__all__ = ["load_scene", "solve", "render", "load_solution", "with_bands", "read_band_table", "Scene", "Solution",
+           "Settings", "MiradError", "SceneError", "SettingsError", "EnvironmentProblem", "SolutionMismatch",
+           "OutputError", "BandTableError"]
 __version__ = "0.1.0"
 
 
@@ -62,6 +64,10 @@ def render(scene, solution=None, *, spp: int = default("spp"), seed: int = 0, sm
 
     check_render(spp=spp, gather_rays=gather_rays, smooth=smooth, final_gather=final_gather)
     loaded = load_scene(scene, variant=options.get("variant"))
+    bands = loaded.band_names or (solution.stats.get("bands") if solution is not None else None)
+    if bands:
+        raise SettingsError(f"render shows RGB radiance, and this is a band solve ({', '.join(bands)}); "
+                            "write its bands with mirad.export (tables, PLY, lightmaps) instead")
     if solution is None:
         solution = solve(loaded, seed=seed, quiet=quiet, **options)
     elif options:

@@ -28,12 +28,18 @@ def parser() -> argparse.ArgumentParser:
     group = solver.add_argument_group("solver options (mirad.Settings; unset: the default shown)")
     _options.add_arguments(group, _options.SOLVE, skip=_COMMON)
 
-    solve = sub.add_parser("solve", parents=[common, solver], help="solve the radiosity and write it out")
+    banded = argparse.ArgumentParser(add_help=False)
+    banded.add_argument("--bands", default=None, metavar="TABLE.csv",
+                        help="solve in the wavebands of this band table instead of RGB (CSV: band, id, "
+                             "reflectance, transmittance, back_reflectance, scale; docs/bands.md); every "
+                             "output gets one column per band, e.g. absorbed_PAR")
+
+    solve = sub.add_parser("solve", parents=[common, banded, solver], help="solve the radiosity and write it out")
     solve.add_argument("-o", "--output", required=True, help="output file: .ply (vertex colours) or .npz (full solution)")
     solve.add_argument("--stats", default=None, help="also write the solve statistics as JSON here")
 
     sub.add_parser("info", parents=[common], help="what the scene needs and what mirad switches on")
-    _add_output_commands(sub, common, solver)
+    _add_output_commands(sub, common, solver, banded)
 
     val = sub.add_parser("validate", parents=[common],
                          help="error against Mitsuba path tracing: speed-vs-error table, plot and images")
@@ -67,7 +73,8 @@ def _solve(args) -> int:
     check_output(args.output, (".ply", ".npz"))
     if args.stats:
         check_output(args.stats)
-    sol = mirad.solve(args.scene, variant=args.variant, quiet=args.quiet,
+    scene = _load(args) if args.bands else args.scene
+    sol = mirad.solve(scene, variant=args.variant, quiet=args.quiet,
                       **_options.given(args, _options.SOLVE, skip=_COMMON))
     sol.save(args.output)
     if args.stats:
@@ -139,7 +146,17 @@ def _validate(args) -> int:
 
 # --- render, export, probe -------------------------------------------------------------------
 
-def _add_output_commands(sub, common, solver) -> None:
+def _load(args, scene=None):
+    """The scene of the command (``scene`` if already loaded), in the bands of ``--bands`` if given
+    (the table is read before the scene loads, so a malformed one fails at once)."""
+    import mirad
+
+    table = mirad.read_band_table(args.bands) if getattr(args, "bands", None) else None
+    scene = scene if scene is not None else mirad.load_scene(args.scene, variant=args.variant)
+    return mirad.with_bands(scene, table) if table is not None and not scene.band_names else scene
+
+
+def _add_output_commands(sub, common, solver, banded) -> None:
     from mirad import options as _options
     from mirad.solution import PROBE_MAX_SAMPLES
 
@@ -158,7 +175,7 @@ def _add_output_commands(sub, common, solver) -> None:
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops (default 0)")
     render.add_argument("--no-png", action="store_true", help="write the EXR only")
 
-    export = sub.add_parser("export", parents=[common, solved, solver],
+    export = sub.add_parser("export", parents=[common, solved, banded, solver],
                             help="PLY mesh, per-triangle table, per-shape summary, lightmaps")
     export.add_argument("-o", "--output", action="append", default=[],
                         help="by suffix: .ply (mesh, vertex colours and float radiosity), .csv or .npz "
@@ -190,7 +207,7 @@ def _add_output_commands(sub, common, solver) -> None:
     export.add_argument("--error-maps", action="store_true",
                         help="with --lightmaps, also write <shape>.error.exr: the estimated error map (W/m^2)")
 
-    probe = sub.add_parser("probe", parents=[common, solved, solver], help="irradiance at sensor points")
+    probe = sub.add_parser("probe", parents=[common, solved, banded, solver], help="irradiance at sensor points")
     probe.add_argument("--points", required=True, help="CSV file with a header and columns x,y,z,nx,ny,nz")
     probe.add_argument("-o", "--output", required=True,
                        help="CSV out: x,y,z,nx,ny,nz, irradiance_r,g,b and its standard error err_r,g,b (W/m^2)")
@@ -221,7 +238,7 @@ def _solution(args, defaults=None, scene=None):
     from mirad import options as _options
     from mirad.errors import SettingsError, SolutionMismatch
 
-    scene = scene if scene is not None else mirad.load_scene(args.scene, variant=args.variant)
+    scene = _load(args, scene)
     given = _options.given(args, _options.SOLVE, skip=_COMMON)
     if args.solution:
         if given:
@@ -231,7 +248,17 @@ def _solution(args, defaults=None, scene=None):
         if not os.path.exists(args.solution):
             raise SolutionMismatch(f"solution file '{args.solution}' does not exist; write one with "
                                    "'mirad solve SCENE -o sol.npz'")
-        return scene, mirad.load_solution(args.solution, scene=scene)
+        saved = mirad.load_solution(args.solution)
+        solved_in = saved.stats.get("bands")
+        if solved_in and not scene.band_names:
+            fix = ("give the band table it was solved with (--bands TABLE.csv)" if hasattr(args, "bands") else
+                   "render shows RGB radiance; write its bands with 'mirad export --bands TABLE.csv' (tables, "
+                   "lightmaps) instead")
+            raise SolutionMismatch(f"solution '{args.solution}' was solved in bands {', '.join(solved_in)}; {fix}")
+        if scene.band_names and not solved_in:
+            raise SolutionMismatch(f"solution '{args.solution}' was solved in RGB, not in bands; drop --bands, or "
+                                   "solve again with --bands")
+        return scene, saved.attach(scene)
     options = {k: v for k, v in (defaults or {}).items() if k not in _COMMON}
     options.update(given)
     return scene, mirad.solve(scene, quiet=args.quiet, **options)
@@ -353,7 +380,10 @@ def _probe(args) -> int:
     points, normals = read_points(args.points)
     scene, sol = _solution(args)
     irradiance, error = sol.irradiance_at(points, normals, rays=args.rays, tolerance=tol, with_error=True)
-    write_probe_table(args.output, points, normals, irradiance, error)
+    from mirad.bands import channel_names, is_band_result
+
+    write_probe_table(args.output, points, normals, irradiance, error,
+                      bands=channel_names(sol) if is_band_result(sol) else None)
     if not args.quiet:
         print(f"wrote {args.output} ({len(points)} points)")
     return 0

@@ -4,6 +4,10 @@ Each element receives the irradiance of every such emitter, estimated at
 stratified points with Mitsuba's own ``Emitter.sample_direction`` (so falloff,
 spot profiles and environment maps are Mitsuba's) and one shadow ray per sample.
 HR then carries the reflected light: B = E + rho * (H_direct + H_gathered).
+
+A band scene (``mirad.bands``; ``scene.light_band_scale`` (E, C)) gets C channels instead of RGB:
+each emitter is sampled once per point, its RGB mean taken, and that grey irradiance weighed by
+the emitter's factor in each band, so every band shares the same points, directions and shadow rays.
 """
 
 from __future__ import annotations
@@ -20,14 +24,18 @@ import mitsuba as mi  # noqa: E402
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
                       seed: int, keys: np.ndarray, with_error: bool = False):
-    """Mean direct irradiance (n, 3), W/m^2, over triangles verts (n, 3, 3).
+    """Mean direct irradiance (n, C), W/m^2, over triangles verts (n, 3, 3): C = 3 (RGB), or the
+    bands of a band scene (``scene.light_band_scale`` (E, C): each emitter's RGB mean times its
+    factor in each band).
 
-    Returns (H, rays), or with ``with_error`` (H, standard error of H (n, 3), rays): the
+    Returns (H, rays), or with ``with_error`` (H, standard error of H (n, C), rays): the
     sample standard deviation of the per-point estimates over sqrt(samples).
     """
     n = len(verts)
-    out = np.zeros((n, 3))
-    err = np.zeros((n, 3))
+    bands = getattr(scene, "light_band_scale", None)
+    channels = 3 if bands is None else bands.shape[1]
+    out = np.zeros((n, channels))
+    err = np.zeros((n, channels))
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, n, per_launch):
@@ -59,7 +67,12 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
     si.n = nn
     si.sh_frame = mi.Frame3f(nn)
     offset = RAY_OFFSET * scene.diagonal
-    lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
+    bands = getattr(scene, "light_band_scale", None)
+    if bands is None:
+        lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
+    else:                                         # per band: sum over emitters of factor x RGB mean
+        lane_sum = [dr.zeros(mi.Float, m * n) for _ in range(bands.shape[1])]
+    channels = 3 if bands is None else bands.shape[1]
     traced = 0
     for e_i, emitter in enumerate(scene.light_emitters):
         s2 = mi.Point2f(to_unit(hash_u32(key ^ (0x27D4EB2F + e_i))), to_unit(hash_u32(key ^ (0x165667B1 + e_i))))
@@ -75,11 +88,15 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
         ray.maxt = dr.select(is_inf, dr.largest(mi.Float), dist * (1 - 1e-4))
         blocked = scene.mi_scene.ray_test(ray, active)
         w = dr.select(active & ~blocked, cos, 0.0)
-        lane_sum += spec * w
+        if bands is None:
+            lane_sum += spec * w
+        else:
+            grey = (spec[0] + spec[1] + spec[2]) * (w * (1.0 / 3.0))
+            lane_sum = [total + float(bands[e_i, b]) * grey for b, total in enumerate(lane_sum)]
         traced += count_true(active)
     dr.eval(lane_sum)
-    mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(3)], 1)
-    square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(3)], 1)
+    mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(channels)], 1)
+    square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(channels)], 1)
     stderr = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
     return mean, stderr, traced
 
@@ -87,7 +104,8 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
 def delta_light_bound(scene, verts: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(n,) W/m^2: an upper bound, anywhere on each triangle verts (n, 3, 3) with front
     normal normals (n, 3), of the irradiance that point and spot lights can bring (brightest
-    channel, no occlusion, a spot's profile at most 1), summed over the lights.
+    channel, no occlusion, a spot's profile at most 1), summed over the lights; in a band scene
+    each light's bound is scaled by its largest factor over the bands (``light_band_scale``).
 
     A light at height p above the triangle's plane and at least s from the triangle (its
     bounding sphere) gives I cos / r^2 = I p / r^3 <= I p / max(p, s)^3; 0 behind the
@@ -98,7 +116,8 @@ def delta_light_bound(scene, verts: np.ndarray, normals: np.ndarray) -> np.ndarr
     out = np.zeros(n)
     center = verts.mean(axis=1)
     radius = np.linalg.norm(verts - center[:, None], axis=2).max(axis=1)
-    for emitter in scene.light_emitters:
+    bands = getattr(scene, "light_band_scale", None)
+    for e_i, emitter in enumerate(scene.light_emitters):
         if not (emitter.flags() & mi.EmitterFlags.DeltaPosition):
             continue
         params = mi.traverse(emitter)
@@ -112,6 +131,8 @@ def delta_light_bound(scene, verts: np.ndarray, normals: np.ndarray) -> np.ndarr
         intensity = float(np.max(np.array(params["intensity.value"], np.float64))) if "intensity.value" in keys else 0.0
         if "texture.value" in keys:
             intensity *= float(np.max(np.array(params["texture.value"], np.float64)))
+        if bands is not None:     # a band's value is its factor times the RGB mean, at most the max
+            intensity *= float(bands[e_i].max())
         height = np.einsum("nc,nc->n", normals, position - verts[:, 0])
         dist = np.linalg.norm(position - center, axis=1)
         s = np.maximum(dist - radius, 0.0)

@@ -25,3 +25,8 @@ class SolutionMismatch(MiradError):
 
 class OutputError(MiradError):
     """An output file cannot be written."""
+
+
+class BandTableError(MiradError, ValueError):
+    """A band table (``mirad.bands``) that cannot apply to its scene: unknown ids or bands, missing
+    rows or values, values out of range."""

@@ -5,6 +5,10 @@ Absorbed power of a triangle is (1 - rho - tau) * H * A per side, front plus bac
 BSDFs), with tau the diffuse transmittance of a translucent leaf's side (zero elsewhere): the light
 a leaf of a plant model absorbs, neither reflected nor transmitted. Organs (``organ_table``) are shapes, connected pieces
 of a mesh or face groups of its file (``mirad.organs``). Every file is written atomically.
+
+Columns per channel are named ``radiosity_r``, ``_g``, ``_b``, or by band in a band solution
+(``mirad.with_bands``): ``radiosity_PAR``, ``absorbed_NIR``; a band solution's .npz holds those
+columns one array each, with ``bands`` naming the bands in order (``mirad.bands.channel_names``).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .arrays import group_mean, group_sum, to_point3, to_vector3
+from .bands import channel_names, is_band_result
 from .errors import OutputError, SettingsError
 from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_exr
 from .organs import ORGAN_KINDS, triangle_components, triangle_groups
@@ -72,8 +77,10 @@ def write_ply(solution, path, *, mesh: str = "input", exposure: str = "scene") -
     if solution.scene is not None:
         verts = solution.scene.to_user(verts)    # a scene far from the origin is solved moved
     trimesh_mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
-    trimesh_mesh.visual.vertex_colors = display_colors(b, exclude=emitting if exposure == "scene" else None)
-    for c, name in enumerate(_CHANNELS[: b.shape[1]]):
+    bands = is_band_result(solution)
+    shown = b.mean(axis=1, keepdims=True) if bands else b       # bands: grey colours of their mean
+    trimesh_mesh.visual.vertex_colors = display_colors(shown, exclude=emitting if exposure == "scene" else None)
+    for c, name in enumerate(channel_names(solution) if bands else _CHANNELS[: b.shape[1]]):
         trimesh_mesh.vertex_attributes[f"radiosity_{name}"] = b[:, c].astype(np.float32)
         trimesh_mesh.vertex_attributes[f"irradiance_{name}"] = h[:, c].astype(np.float32)
         trimesh_mesh.vertex_attributes[f"error_{name}"] = err[:, c].astype(np.float32)
@@ -175,13 +182,14 @@ def shape_summary(solution) -> dict:
             "mean_radiosity": mean, "absorbed": absorbed}
 
 
-def _columns(table: dict) -> list:
-    """Flatten (N, C) arrays into name_r, name_g, name_b columns: list of (name, values)."""
+def _columns(table: dict, channels=None) -> list:
+    """Flatten (N, C) arrays into name_r, name_g, name_b columns (or name_PAR, ... with ``channels``
+    the band names): list of (name, values)."""
     cols = []
     for name, values in table.items():
         values = np.asarray(values)
         if values.ndim == 2:
-            suffixes = "xyz" if name in _POSITIONS else _CHANNELS
+            suffixes = "xyz" if name in _POSITIONS else (channels or _CHANNELS)
             for c in range(values.shape[1]):
                 cols.append((f"{name}_{suffixes[c]}", values[:, c]))
         else:
@@ -189,8 +197,8 @@ def _columns(table: dict) -> list:
     return cols
 
 
-def _csv_bytes(table: dict) -> bytes:
-    cols = _columns(table)
+def _csv_bytes(table: dict, channels=None) -> bytes:
+    cols = _columns(table, channels)
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow([name for name, _ in cols])
@@ -204,12 +212,15 @@ def write_table(solution, path) -> Path:
     path = Path(path)
     suffix = path.suffix.lower()
     table = triangle_table(solution)
+    bands = _bands(solution)
     if suffix == ".csv":
-        data = _csv_bytes(table)
+        data = _csv_bytes(table, bands)
     elif suffix == ".npz":
         summary = shape_summary(solution)
         buffer = io.BytesIO()
-        np.savez_compressed(buffer, **table, **{f"shape_summary_{k}": v for k, v in summary.items()})
+        np.savez_compressed(buffer, **_npz_arrays(table, bands),
+                            **{f"shape_summary_{k}": v for k, v in _npz_arrays(summary, bands).items()
+                               if k != "bands"})
         data = buffer.getvalue()
     else:
         raise OutputError(f"table output '{path}' must end in .csv or .npz")
@@ -222,9 +233,24 @@ def write_shape_summary(solution, path) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".csv":
         raise OutputError(f"shape summary '{path}' must end in .csv")
-    data = _csv_bytes(shape_summary(solution))
+    data = _csv_bytes(shape_summary(solution), _bands(solution))
     atomic_write(path, lambda handle: handle.write(data))
     return path
+
+
+def _bands(solution):
+    """The band names of a band solution (column suffixes), None for RGB."""
+    return channel_names(solution) if is_band_result(solution) else None
+
+
+def _npz_arrays(table: dict, bands) -> dict:
+    """The arrays of a table for .npz: as they are (RGB), or with bands one column per band
+    (``radiosity_PAR``) and ``bands`` naming them in order."""
+    if bands is None:
+        return table
+    out = {name: values for name, values in _columns(table, bands)}
+    out["bands"] = np.asarray(bands, dtype=str)
+    return out
 
 
 # ------------------------------------------------------------------------------------------
@@ -309,11 +335,12 @@ def write_organ_table(solution, path, *, by: str = "component", property: str | 
     if suffix not in TABLE_SUFFIXES:
         raise OutputError(f"organ table '{path}' must end in .csv or .npz")
     table = organ_table(solution, by=by, property=property)
+    bands = _bands(solution)
     if suffix == ".csv":
-        data = _csv_bytes(table)
+        data = _csv_bytes(table, bands)
     else:
         buffer = io.BytesIO()
-        np.savez_compressed(buffer, **table)
+        np.savez_compressed(buffer, **_npz_arrays(table, bands))
         data = buffer.getvalue()
     atomic_write(path, lambda handle: handle.write(data))
     return path
@@ -368,15 +395,16 @@ def read_points(path) -> tuple:
 
 
 def write_probe_table(path, points: np.ndarray, normals: np.ndarray, irradiance: np.ndarray,
-                      error: np.ndarray | None = None) -> Path:
+                      error: np.ndarray | None = None, *, bands=None) -> Path:
     """CSV with x,y,z,nx,ny,nz, irradiance_r,g,b (W/m^2) and, given ``error`` (P, C), its standard
-    error err_r,g,b (W/m^2, ``Solution.irradiance_at(..., with_error=True)``) per point."""
+    error err_r,g,b (W/m^2, ``Solution.irradiance_at(..., with_error=True)``) per point; with
+    ``bands`` (C names, ``mirad.bands.channel_names``) irradiance_PAR, err_PAR, ..."""
     path = Path(path)
     table = {name: col for name, col in zip(PROBE_COLUMNS, np.column_stack([points, normals]).T)}
     table["irradiance"] = np.asarray(irradiance, dtype=np.float64)
     if error is not None:
         table["err"] = np.asarray(error, dtype=np.float64)
-    data = _csv_bytes(table)
+    data = _csv_bytes(table, list(bands) if bands is not None else None)
     return atomic_write(path, lambda handle: handle.write(data))
 
 
@@ -543,7 +571,8 @@ LIGHTMAP_INDEX = "lightmaps.csv"
 
 def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int | None = None, dilate: int = 8,
                     error: bool = False, quiet: bool = True) -> list:
-    """Bake lightmaps and write ``<folder>/<stem>.exr`` (R, G, B float, W/m^2) per shape with UVs,
+    """Bake lightmaps and write ``<folder>/<stem>.exr`` (R, G, B float, W/m^2; a band solution: one
+    channel per band, named by it) per shape with UVs,
     and ``<folder>/lightmaps.csv`` mapping each shape id to its file (stems are unique, see
     ``lightmap_names``); with ``error``, also ``<stem>.error.exr``, the estimated error map (W/m^2).
     Returns the paths written."""
@@ -554,7 +583,11 @@ def write_lightmaps(solution, folder, *, resolution: int = 256, supersample: int
     if not maps:
         raise OutputError("no shape in the scene has texture coordinates (UVs); there is nothing to bake")
     stems = lightmap_names(solution.shape_ids)
-    rgb = lambda img: {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}  # noqa: E731
+    bands = _bands(solution)
+    if bands is None:
+        rgb = lambda img: {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}  # noqa: E731
+    else:                                   # a band solution: one EXR channel per band, named by it
+        rgb = lambda img: {name: img[..., c] for c, name in enumerate(bands)}  # noqa: E731
     blobs = {f"{stems[sid]}.exr": exr_bytes(rgb(img)) for sid, img in maps.items()}
     index = {"shape_id": list(maps), "file": [f"{stems[sid]}.exr" for sid in maps]}
     if error:

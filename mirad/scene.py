@@ -74,6 +74,10 @@ class Scene:
         (plugin type, path), e.g. ("ply", "plants/p1.ply"), or None (analytic shapes, meshes made in
         code, an ``mi.Scene`` given as it is, or a file mirad cannot tell); ``mirad.organs`` reads the
         file again for its face groups
+    band_names : list[str] or None  the channels' names when they are wavebands (``mirad.with_bands``);
+        None: RGB
+    light_band_scale : (E, C) float or None  per non-area emitter (``light_emitters``) and band, the
+        factor on the RGB mean of its emission (``mirad.bands``); None: the emitters' own RGB
     tri_leaf : (T,) bool           triangles whose BSDF is a leaf (``mirad/leaf.py``; or a ``twosided``
         or blend of leaves: every lobe diffuse, one of them transmitting): their transmittance is
         diffuse, the same both ways, and is what ``patch_transmittance`` hands to the other side
@@ -115,6 +119,8 @@ class Scene:
     origin: np.ndarray | None = None
     tri_leaf: np.ndarray | None = None
     shape_files: list = field(default_factory=list)
+    band_names: list | None = None
+    light_band_scale: np.ndarray | None = None
 
     def __post_init__(self):
         T = len(self.faces)
@@ -214,6 +220,9 @@ class Scene:
             tau = self.patch_transmittance
             if not np.all(tau == tau[:, :1]):
                 return False
+        scale = self.light_band_scale          # bands: the sun may differ between bands (None: RGB)
+        if scale is not None and not np.all(scale == scale[:, :1]):
+            return False
         return bool(np.all(rho == rho[:, :1]) and np.all(em == em[:, :1]) and np.all(self.back_rho == self.back_rho[:, :1]))
 
     @property
@@ -252,6 +261,9 @@ class Scene:
             h.update(np.ascontiguousarray(np.round(self.patch_transmittance, 6)).tobytes())
         h.update("\0".join(self.shape_ids).encode())
         h.update("\0".join(self.light_kinds).encode())
+        if self.band_names:          # band scenes only: RGB scenes keep the fingerprint they had
+            h.update("\0".join(self.band_names).encode())
+            h.update(np.ascontiguousarray(np.round(self.light_band_scale, 6)).tobytes())
         return h.hexdigest()[:16]
 
     def model_error(self, irradiance: np.ndarray | None = None,

@@ -40,7 +40,7 @@ class Solution:
     array is a read-only view through a documented property. Sizes: L leaf elements (the finest
     elements of the refined hierarchy, front and back sides), P patches (input triangles and
     the back sides of two-sided ones), T input triangles, V input vertices, S shapes, C channels
-    (1 for a grey scene, else 3).
+    (1 for a grey scene, else 3; a band scene's bands, named in ``stats["bands"]``).
 
     Attributes
     ----------
@@ -109,6 +109,8 @@ class Solution:
         if detail_leaves is not None and len(detail_leaves):
             arrays["detail_leaf"] = np.asarray(detail_leaves, np.int32)
             arrays["leaf_detail"] = widen(leaf_detail, axis=3)
+        if scene.band_names:                # a band scene (mirad.with_bands): outputs name their columns by band
+            stats["bands"] = list(scene.band_names)
         return cls(arrays=arrays, stats=stats, shape_ids=scene.shape_ids,
                    fingerprint=scene.fingerprint, scene=scene)
 
