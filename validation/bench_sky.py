@@ -10,7 +10,7 @@ reference's own noise), and how many direct-light points the leaves got (the cor
 every input triangle (front) from ``direct_irradiance`` at 64 and 1024 points against a 65,536-point
 estimate, with the standard error it reports.
 
-    python validation/bench_sky.py --work /tmp/sky-canopy --reference-samples 32768
+    python validation/bench_sky.py --work sky-canopy --reference-samples 32768
 """
 
 from __future__ import annotations
