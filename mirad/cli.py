@@ -1,4 +1,4 @@
-"""Command line: ``mirad solve | info | validate | render | export | probe``. Parses arguments and calls the Python API only."""
+"""Command line: ``mirad solve | info | validate | render | export | probe | sky``. Parses arguments and calls the Python API only."""
 
 from __future__ import annotations
 
@@ -62,6 +62,7 @@ def parser() -> argparse.ArgumentParser:
                           "or set MIRAD_CACHE)")
     val.add_argument("--no-cache", action="store_true", help="always recompute the reference")
     val.add_argument("--seed", type=int, default=0, help="mirad's random seed (default 0)")
+    _add_sky_command(sub)
     return parser
 
 
@@ -389,6 +390,68 @@ def _probe(args) -> int:
     return 0
 
 
+# --- sky ---------------------------------------------------------------------------------------
+
+def _add_sky_command(sub) -> None:
+    sky = sub.add_parser("sky", help="write a standard sky (uniform, CIE overcast, with a sun) as an EXR and "
+                                     "print its XML emitters (docs/skies.md)")
+    sky.add_argument("model", choices=("uniform", "overcast"), help="sky radiance model")
+    sky.add_argument("--irradiance", required=True,
+                     help="horizontal irradiance of the diffuse sky, W/m^2 (or any linear unit): one number or R,G,B")
+    sky.add_argument("--ground", type=float, default=None,
+                     help="ground albedo whose glow fills the lower hemisphere (0: black; default: black, "
+                          "and for 'uniform' Mitsuba's constant emitter, the same radiance all round)")
+    sky.add_argument("--up", default="+z", help="the scene's up axis: +z (default), -z, +y, -y, +x or -x")
+    sky.add_argument("--rows", type=int, default=None, help="rows of the latitude-longitude bitmap (odd)")
+    sun = sky.add_argument_group("sun (all of --azimuth, --elevation and one irradiance add a directional sun)")
+    sun.add_argument("--azimuth", type=float, default=None, help="sun azimuth, degrees from north towards east "
+                     "(north +y, or -z when the up axis is y)")
+    sun.add_argument("--elevation", type=float, default=None, help="sun elevation above the horizon, degrees")
+    sun.add_argument("--direct-normal", default=None, help="sun's direct normal irradiance, W/m^2 (or R,G,B)")
+    sun.add_argument("--direct-horizontal", default=None,
+                     help="or the sun's direct irradiance on a horizontal plane, W/m^2 (or R,G,B)")
+    sky.add_argument("-o", "--output", default=None,
+                     help="EXR file for the sky's bitmap (needed by envmap skies: overcast, or --ground)")
+
+
+def _sky(args) -> int:
+    from mirad import sky
+    from mirad.errors import SettingsError
+    from mirad.files import check_output
+
+    def values(text, option):
+        numbers = _numbers(text, option, float)
+        if numbers is not None and len(numbers) not in (1, 3):
+            raise SettingsError(f"{option} {text!r}: give one number or three (R,G,B)")
+        return None if numbers is None else (numbers[0] if len(numbers) == 1 else numbers)
+
+    rows = {} if args.rows is None else {"rows": args.rows}
+    irradiance = values(args.irradiance, "--irradiance")
+    sun_given = [x is not None for x in (args.azimuth, args.elevation, args.direct_normal or args.direct_horizontal)]
+    if any(sun_given) and not all(sun_given):
+        raise SettingsError("a sun needs --azimuth, --elevation and --direct-normal or --direct-horizontal")
+    if args.output:
+        check_output(args.output, (".exr",))
+    if all(sun_given):
+        lights = sky.sun_and_sky(azimuth=args.azimuth, elevation=args.elevation, diffuse_irradiance=irradiance,
+                                 direct_normal=values(args.direct_normal, "--direct-normal"),
+                                 direct_horizontal=values(args.direct_horizontal, "--direct-horizontal"),
+                                 sky=args.model, ground=args.ground, up=args.up, **rows)
+    else:
+        build = sky.overcast_sky if args.model == "overcast" else sky.uniform_sky
+        lights = {"sky": build(irradiance, ground=args.ground, up=args.up, **rows)}
+    envmap = any(d["type"] == "envmap" for d in lights.values())
+    if envmap and not args.output:
+        raise SettingsError(f"the {args.model} sky is an envmap: give -o sky.exr for its bitmap")
+    text = sky.write_sky(lights, args.output if envmap else None)
+    if envmap:
+        name = os.path.basename(args.output)
+        text = text.replace(f'value="{args.output}"', f'value="{name}"')
+        print(f"<!-- {args.output} written; Mitsuba looks for {name} beside the scene file -->")
+    print(text)
+    return 0
+
+
 def _check_variant(variant) -> None:
     """A CUDA variant without a GPU: one line, before Mitsuba tries and fails deep inside."""
     from mirad import _runtime
@@ -439,7 +502,7 @@ def main(argv=None) -> int:
     try:
         _check_variant(getattr(args, "variant", None))
         return {"solve": _solve, "info": _info, "validate": _validate, "render": _render,
-                "export": _export, "probe": _probe}[args.command](args)
+                "export": _export, "probe": _probe, "sky": _sky}[args.command](args)
     except MiradError as exc:
         print(f"mirad: error: {exc}", file=sys.stderr)
         return 2

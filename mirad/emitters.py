@@ -1,8 +1,15 @@
 """Direct light from emitters that are not scene surfaces: point, spot, directional, environment.
 
 Each element receives the irradiance of every such emitter, estimated at
-stratified points with Mitsuba's own ``Emitter.sample_direction`` (so falloff,
-spot profiles and environment maps are Mitsuba's) and one shadow ray per sample.
+stratified points with one shadow ray per sample and emitter. Point, spot and
+directional lights are sampled with Mitsuba's own ``Emitter.sample_direction`` (so
+falloff and spot profiles are Mitsuba's). Skies (non-delta infinite emitters:
+``constant``, ``envmap``) are sampled by the receiver's cosine instead, with
+directions stratified per element (``sky_sample``): a ``constant`` sky by the cosine
+lobe alone (an unoccluded point then has zero variance), an ``envmap`` by a mixture
+of the cosine lobe folded into the map's upper hemisphere (weight ``SKY_COSINE``)
+and the map's own ``sample_direction`` (the rest, so a bright sun in a map or
+light below its horizon is still found), each sample weighted by the mixture's pdf.
 HR then carries the reflected light: B = E + rho * (H_direct + H_gathered).
 
 A band scene (``mirad.bands``; ``scene.light_band_scale`` (E, C)) gets C channels instead of RGB:
@@ -11,6 +18,8 @@ the emitter's factor in each band, so every band shares the same points, directi
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -21,6 +30,82 @@ from .visibility import count_true, hash_u32, project_to_surface, stratified, to
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+#: Share of an envmap's samples drawn from the receiver's cosine lobe folded into the map's
+#: upper hemisphere; the rest use the map's own importance sampling (``sky_sample``).
+SKY_COSINE = 0.75
+#: Multipliers for the per-element permutation of direction strata (one coprime to the count is used).
+_PERMUTE = (2654435761, 2246822519, 3266489917, 668265263, 374761393)
+
+
+def is_sky(emitter) -> bool:
+    """True for an emitter sampled as a sky here: infinite and not a delta direction (constant, envmap)."""
+    flags = emitter.flags()
+    return bool(flags & mi.EmitterFlags.Infinite) and not bool(flags & mi.EmitterFlags.Delta)
+
+
+def sky_up(emitter) -> np.ndarray | None:
+    """(3,) float: the world direction of an ``envmap``'s local +y (its zenith), None for other skies."""
+    params = mi.traverse(emitter)
+    if emitter.class_name() != "EnvironmentMapEmitter":
+        return None
+    if "to_world" not in params.keys():
+        return np.array([0.0, 1.0, 0.0])
+    m = params["to_world"].matrix
+    m = np.array(m.numpy() if hasattr(m, "numpy") else m, dtype=np.float64).reshape(4, 4)
+    up = m[:3, 1]
+    return up / np.linalg.norm(up)
+
+
+def _permuted(k, n: int, key):
+    """Stratum of sample k (of n) after a per-key random shift of a fixed coprime stride: every
+    stratum once per element, and each sample's stratum uniform over the n strata."""
+    stride = next(a for a in _PERMUTE if math.gcd(a % n or 1, n) == 1) % n or 1
+    shift = hash_u32(key ^ 0x3C6EF372) % n
+    return mi.UInt32((mi.UInt64(k) * stride + mi.UInt64(shift)) % n)
+
+
+def sky_sample(emitter, si, nn, k, n: int, key, up):
+    """Directions and irradiance weights of one sample per lane for a sky emitter.
+
+    si : mi.SurfaceInteraction3f at the receiver points; nn : their normals (mi.Vector3f);
+    k : sample index in 0..n-1 of each lane (mi.UInt32), key : per-element hash (mi.UInt32);
+    up : (3,) float world zenith of an envmap (``sky_up``), None for a ``constant`` sky.
+    Returns (d mi.Vector3f unit directions towards the sky, w mi.Color3f = L(d) cos / pdf(d),
+    W/m^2, zero where the sample is useless). The 2D sample is stratified over n strata,
+    permuted per element (``_permuted``), and jittered per lane.
+    """
+    gx = int(math.ceil(math.sqrt(n)))
+    gy = int(math.ceil(n / gx))
+    cell = _permuted(k, gx * gy, key)
+    u2 = mi.Point2f((mi.Float(cell % gx) + to_unit(hash_u32(key ^ (k * 0x2C1B3C6D + 0x297A2D39)))) * (1.0 / gx),
+                    (mi.Float(cell // gx) + to_unit(hash_u32(key ^ (k * 0x85EBCA77 + 0x1B873593)))) * (1.0 / gy))
+    frame = mi.Frame3f(nn)
+    d_cos = frame.to_world(mi.warp.square_to_cosine_hemisphere(u2))
+    cos = dr.dot(nn, d_cos)
+    if up is None:
+        # constant sky: the cosine lobe alone, pdf cos / pi
+        d, pdf = d_cos, cos * dr.inv_pi
+    else:
+        zenith = mi.Vector3f(*[float(c) for c in up])
+        # fold the lobe's part below the map's horizon up into the sky: pdf (n.d)+ + (n'.d)+ over pi
+        b = dr.dot(d_cos, zenith)
+        d_fold = dr.select(b < 0, d_cos - 2 * b * zenith, d_cos)
+        pick = to_unit(hash_u32(key ^ (k * 0x68E31DA4 + 0x5BD1E995))) < SKY_COSINE
+        ds_e, _ = emitter.sample_direction(si, u2, True)
+        d = dr.select(pick, d_fold, ds_e.d)
+        mirrored = nn - 2 * dr.dot(nn, zenith) * zenith
+        p_fold = dr.select(dr.dot(d, zenith) > 0,
+                           (dr.maximum(dr.dot(nn, d), 0) + dr.maximum(dr.dot(mirrored, d), 0)) * dr.inv_pi, 0.0)
+        query = dr.zeros(mi.DirectionSample3f, dr.width(d))
+        query.d = d
+        pdf = SKY_COSINE * p_fold + (1 - SKY_COSINE) * emitter.pdf_direction(si, query, True)
+        cos = dr.dot(nn, d)
+    look = dr.zeros(mi.SurfaceInteraction3f, dr.width(d))
+    look.wi = -d
+    radiance = emitter.eval(look, True)
+    w = dr.select((cos > 0) & (pdf > 0), radiance * cos / dr.select(pdf > 0, pdf, 1.0), 0.0)
+    return d, w
+
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
                       seed: int, keys: np.ndarray, with_error: bool = False):
@@ -29,7 +114,9 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     factor in each band).
 
     Returns (H, rays), or with ``with_error`` (H, standard error of H (n, C), rays): the
-    sample standard deviation of the per-point estimates over sqrt(samples).
+    sample standard deviation of the per-point estimates over sqrt(samples) (conservative for
+    the stratified points and sky directions), and under a sky at least the sky's part of H over
+    ``samples`` (a feature smaller than one stratum may be missed by every sample).
     """
     n = len(verts)
     bands = getattr(scene, "light_band_scale", None)
@@ -68,18 +155,39 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
     si.sh_frame = mi.Frame3f(nn)
     offset = RAY_OFFSET * scene.diagonal
     bands = getattr(scene, "light_band_scale", None)
+    channels = 3 if bands is None else bands.shape[1]
     if bands is None:
         lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
+        sky_sum = dr.zeros(mi.Color3f, m * n)     # the skies' part of it
     else:                                         # per band: sum over emitters of factor x RGB mean
-        lane_sum = [dr.zeros(mi.Float, m * n) for _ in range(bands.shape[1])]
-    channels = 3 if bands is None else bands.shape[1]
+        lane_sum = [dr.zeros(mi.Float, m * n) for _ in range(channels)]
+        sky_sum = [dr.zeros(mi.Float, m * n) for _ in range(channels)]
+
+    def add(total, e_i: int, value):
+        """total plus emitter e_i's contribution value (mi.Color3f): in RGB, or per band
+        its RGB mean times the emitter's factor in the band."""
+        if bands is None:
+            return total + value
+        grey = (value[0] + value[1] + value[2]) * (1.0 / 3.0)
+        return [t + float(bands[e_i, c]) * grey for c, t in enumerate(total)]
+
     traced = 0
     for e_i, emitter in enumerate(scene.light_emitters):
+        o = p + nn * offset
+        if is_sky(emitter):
+            d, weight = sky_sample(emitter, si, nn, k, n, key ^ (0x7FEB352D * (e_i + 1)), sky_up(emitter))
+            active = dr.any(weight > 0)
+            ray = mi.Ray3f(o, d)
+            blocked = scene.mi_scene.ray_test(ray, active)
+            seen = dr.select(active & ~blocked, weight, 0.0)
+            lane_sum = add(lane_sum, e_i, seen)
+            sky_sum = add(sky_sum, e_i, seen)
+            traced += count_true(active)
+            continue
         s2 = mi.Point2f(to_unit(hash_u32(key ^ (0x27D4EB2F + e_i))), to_unit(hash_u32(key ^ (0x165667B1 + e_i))))
         ds, spec = emitter.sample_direction(si, s2, True)
         cos = dr.dot(nn, ds.d)
         active = (cos > 0) & (ds.pdf > 0)
-        o = p + nn * offset
         is_inf = dr.isinf(ds.dist)
         to_light = ds.p - o
         dist = dr.select(is_inf, dr.largest(mi.Float), dr.norm(to_light))
@@ -88,16 +196,17 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
         ray.maxt = dr.select(is_inf, dr.largest(mi.Float), dist * (1 - 1e-4))
         blocked = scene.mi_scene.ray_test(ray, active)
         w = dr.select(active & ~blocked, cos, 0.0)
-        if bands is None:
-            lane_sum += spec * w
-        else:
-            grey = (spec[0] + spec[1] + spec[2]) * (w * (1.0 / 3.0))
-            lane_sum = [total + float(bands[e_i, b]) * grey for b, total in enumerate(lane_sum)]
+        lane_sum = add(lane_sum, e_i, spec * w)
         traced += count_true(active)
-    dr.eval(lane_sum)
+    dr.eval(lane_sum, sky_sum)
     mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(channels)], 1)
     square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(channels)], 1)
     stderr = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    if any(is_sky(e) for e in scene.light_emitters):
+        # samples that all agree (a sky seen whole, or hidden whole) may have missed an occluder
+        # or a gap smaller than one stratum: at least one of n samples could have turned over
+        sky_mean = np.stack([dr.block_sum(sky_sum[c], n).numpy() / n for c in range(channels)], 1)
+        stderr = np.maximum(stderr, sky_mean / n)
     return mean, stderr, traced
 
 

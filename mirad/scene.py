@@ -252,7 +252,8 @@ class Scene:
 
     @property
     def fingerprint(self) -> str:
-        """Hash of geometry, materials and lights: saved solutions and caches check it."""
+        """Hash of geometry, materials and lights (area emission, and the kind and every parameter of
+        the other emitters): saved solutions and caches check it."""
         h = hashlib.sha256()
         for arr in (self.vertices.astype(np.float32), self.faces.astype(np.int64),
                     np.round(self.tri_rho, 6), np.round(self.tri_emission, 6), np.round(self.back_rho, 6)):
@@ -264,6 +265,13 @@ class Scene:
         if self.band_names:          # band scenes only: RGB scenes keep the fingerprint they had
             h.update("\0".join(self.band_names).encode())
             h.update(np.ascontiguousarray(np.round(self.light_band_scale, 6)).tobytes())
+        for emitter in self.light_emitters:   # their values too: two skies of one kind differ
+            params = mi.traverse(emitter)
+            for key in sorted(params.keys()):
+                value = params[key]
+                value = value.matrix if hasattr(value, "matrix") else value
+                h.update(key.encode())
+                h.update(np.ascontiguousarray(np.round(np.array(value, dtype=np.float64), 6)).tobytes())
         return h.hexdigest()[:16]
 
     def model_error(self, irradiance: np.ndarray | None = None,

@@ -398,8 +398,9 @@ class Solution:
 
         A local gather over every leaf element of the solution (Lambert form factor to the
         leaf times its radiosity, with ``rays`` shadow rays per leaf), plus the direct light
-        of point, spot, directional and environment emitters, sampled with Mitsuba's own
-        ``Emitter.sample_direction`` and one shadow ray per sample.
+        of point, spot, directional and environment emitters (``emitters.direct_irradiance``:
+        Mitsuba's own ``Emitter.sample_direction`` for point, spot and directional lights, the
+        receiver's cosine for skies) and one shadow ray per sample.
 
         The direct light starts from a pilot of ``PROBE_FIRST_SAMPLES`` (64) samples per point.
         Each point it finds noisy gets fresh samples (another seed) at the count its pilot predicts

@@ -224,7 +224,8 @@ def roofed_sky():
 
 
 def test_probe_under_open_sky_reads_pi_l_within_its_error(open_sky):
-    """H = pi L for an upward probe under a constant sky; 64 fixed samples were 10-30 % off."""
+    """H = pi L for an upward probe under a constant sky (64 fixed samples of Mitsuba's own sampling
+    of the constant emitter were 10-30 % off)."""
     sol = open_sky
     rng = np.random.default_rng(3)
     p = rng.uniform(-1, 1, (16, 3))
@@ -240,10 +241,13 @@ def test_probe_under_open_sky_reads_pi_l_within_its_error(open_sky):
     rel = h[:, 0] / exact - 1
     assert np.sqrt(np.mean(rel ** 2)) < CLOSED_FORM_REL
     assert abs(rel.mean()) < CLOSED_FORM_REL / 4
-    # without error control (64 samples, as before) the same probes are far off
+    # without error control (64 samples) the probes report that 64 samples may miss an occluder
+    # smaller than a stratum (1/64 > 0.01); Mitsuba's own sampling of the constant emitter left them
+    # 10-30 % off, the receiver's cosine lobe (emitters.sky_sample) reads pi L exactly in open air
     with pytest.warns(UserWarning, match="16 of 16 probes.*reached max_samples=64"):
-        h64 = sol.irradiance_at(p, up, max_samples=64)
-    assert np.max(np.abs(h64 / exact - 1)) > 0.05
+        h64, err64 = sol.irradiance_at(p, up, max_samples=64, with_error=True)
+    assert np.allclose(h64, exact, rtol=1e-5)
+    assert np.allclose(err64, exact / 64, rtol=1e-5)
 
 
 def test_probe_error_under_an_occluded_sky_is_within_2x_of_the_measured(roofed_sky):
