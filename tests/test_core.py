@@ -311,3 +311,33 @@ def test_opening_volume_clusters_inside_a_canopy_does_not_inflate_the_estimate()
     rising = np.diff(history) > 0
     assert not (rising[:-2] & rising[1:-1] & rising[2:]).any()      # (it rose 10 passes in a row)
     assert sol.stats["links"] < 50_000 and sol.stats["estimated_error"] <= 0.1
+
+
+def test_furnace_with_occluders_every_triangle_within_tolerance():
+    """A closed furnace with a floating box and a tilted slab inside, every surface emitting
+    and reflecting alike: B = E / (1 - rho) everywhere, so at every point the visible form
+    factors must sum to 1 whatever hides what (an error in the visibility of a partly hidden
+    source shows here as an error in B)."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    rho, tol = 0.5, 0.05
+
+    def surface(to_world, kind="rectangle", sid=""):
+        return {"type": kind, "id": sid, "to_world": to_world,
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}},
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1 / np.pi}}}
+
+    sides = {"floor": T().translate([0, 0, -1]), "ceiling": T().translate([0, 0, 1]).rotate([1, 0, 0], 180),
+             "xp": T().translate([1, 0, 0]).rotate([0, 1, 0], -90), "xm": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+             "yp": T().translate([0, 1, 0]).rotate([1, 0, 0], 90), "ym": T().translate([0, -1, 0]).rotate([1, 0, 0], -90)}
+    scene = {"type": "scene", **{k: surface(v, sid=k) for k, v in sides.items()},
+             "box": surface(T().translate([0.4, 0.3, -0.45]).scale([0.3, 0.4, 0.4]), "cube", "box"),
+             "slab": surface(T().translate([-0.4, -0.2, 0.3]).rotate([1, 0, 0], 20).scale([0.35, 0.35, 0.02]),
+                             "cube", "slab")}
+    sol = mirad.solve(scene, tolerance=tol, seed=0, **HIER)
+    b = sol.triangle_radiosity[:, 0]
+    exact = 1.0 / (1.0 - rho)
+    assert np.abs(b / exact - 1).max() <= tol
+    assert abs(np.average(b, weights=sol.triangle_area) / exact - 1) <= 0.005
+    assert sol.stats["estimated_error"] <= tol
