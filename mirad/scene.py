@@ -33,6 +33,25 @@ import mitsuba as mi  # noqa: E402
 ZERO_AREA = 1e-12
 
 
+
+def emitters_grey(emitters: list) -> bool:
+    """True when every one of these (non-area) Mitsuba emitters has the same value in all
+    channels: its colour parameters (a sun's irradiance, a lamp's intensity, a sky's
+    radiance) and every pixel of an environment map."""
+    for emitter in emitters:
+        params = mi.traverse(emitter)
+        for key in params.keys():
+            value = params[key]
+            if isinstance(value, mi.Color3f):
+                rgb = np.asarray(value).reshape(3, -1)
+            elif isinstance(value, mi.TensorXf) and value.ndim == 3 and value.shape[-1] == 3:
+                rgb = np.asarray(value).reshape(-1, 3).T
+            else:
+                continue
+            if not np.all(rgb == rgb[:1]):
+                return False
+    return True
+
 @dataclass
 class Scene:
     """A Mitsuba scene turned into triangle arrays (all float64, world space, metres).
@@ -222,6 +241,8 @@ class Scene:
                 return False
         scale = self.light_band_scale          # bands: the sun may differ between bands (None: RGB)
         if scale is not None and not np.all(scale == scale[:, :1]):
+            return False
+        if scale is None and not emitters_grey(self.light_emitters):   # a coloured sun on grey surfaces
             return False
         return bool(np.all(rho == rho[:, :1]) and np.all(em == em[:, :1]) and np.all(self.back_rho == self.back_rho[:, :1]))
 

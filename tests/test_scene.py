@@ -275,3 +275,24 @@ def test_a_merged_mi_scene_warns_that_ids_were_lost():
         warnings.simplefilter("always")
         mirad.load_scene(merged)
     assert any("have no id" in str(w.message) and "optimize=False" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize("core", ["legacy", "hierarchical"])
+def test_a_coloured_sun_on_grey_surfaces_keeps_its_colour(core):
+    """A white plate under an RGB (1, 0.5, 0.2) W/m^2 sun at 60 degrees from the zenith: the
+    scene is not grey although every surface is, and each channel gets E cos(60 deg)."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    sun = np.array([1.0, 0.5, 0.2])
+    tilt = np.radians(60.0)
+    scene = mirad.load_scene({
+        "type": "scene",
+        "plate": {"type": "rectangle", "id": "plate", "to_world": T().scale(0.5),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}}},
+        "sun": {"type": "directional", "direction": [np.sin(tilt), 0.0, -np.cos(tilt)],
+                "irradiance": {"type": "rgb", "value": sun.tolist()}}})
+    assert not scene.grey and scene.features["channels"] == 3
+    sol = mirad.solve(scene, tolerance=0.05, core=core, quiet=True)
+    h = (sol.triangle_area[:, None] * sol.triangle_irradiance).sum(0) / sol.triangle_area.sum()
+    np.testing.assert_allclose(h, sun * np.cos(tilt), rtol=1e-4)
