@@ -74,10 +74,10 @@ SKY_IRRADIANCE = 120.0
 RAD_SUN_ANGLE = 0.533
 
 # ---------------- sweeps -------------------------------------------------------------------------------------
-FULL = dict(leaves=1000, reference=65536, tolerances=(0.1, 0.05, 0.02, 0.01, 0.005),
-            pt=(64, 256, 1024, 4096),
-            radiance=("p4 a1 ab2 ad128 as32 aa0.2 ar32", "p16 a1 ab3 ad256 as64 aa0.1 ar64",
-                      "p16 a1 ab4 ad512 as128 aa0.05 ar128", "p64 a4 ab5 ad1024 as256 aa0.05 ar128"),
+FULL = dict(leaves=1000, reference=65536, tolerances=(0.1, 0.05, 0.02, 0.01),
+            pt=(64, 256, 1024, 4096, 16384),
+            radiance=("p4 a1 ab2 ad128 as32 aa0.2 ar32", "p16 a4 ab3 ad64 as0 aa0", "p16 a4 ab4 ad128 as0 aa0",
+                      "p16 a4 ab5 ad256 as0 aa0"),
             helios=("d100 s100 k3", "d100 s1000 k3", "d1000 s5000 k4"))
 QUICK = dict(leaves=60, reference=1024, tolerances=(0.1, 0.05), pt=(16, 64),
              radiance=("p4 a1 ab2 ad64 as16 aa0.2 ar16",), helios=("d10 s50 k2",))
