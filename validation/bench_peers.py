@@ -171,7 +171,7 @@ def irradiance_from_radiosity(b_front, b_back, rho_front, rho_back, tau) -> tupl
     >>> h = irradiance_from_radiosity(np.array([[0.5]]), np.array([[0.7]]), np.array([[0.1]]),
     ...                               np.array([[0.1]]), np.array([[0.3]]))
     >>> [round(float(x[0, 0]), 6) for x in h]
-    [2.5, 0.5]
+    [2.0, 1.0]
     """
     b_f, b_b, r_f, r_b, t = (np.asarray(x, np.float64) for x in (b_front, b_back, rho_front, rho_back, tau))
     det = r_f * r_b - t * t
