@@ -36,14 +36,20 @@ from .linear import LeafSystem, solve_system
 from .nodes import (FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes,
                     split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
-                     face_mean_errors, link_values, power_errors, refinement_threshold)
+                     face_mean_errors, link_values, power_errors, refinement_threshold, volume_transfer_std)
 from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET, channel_max
 
-#: Most points per leaf for the direct light of point/sky emitters.
-MAX_DIRECT_SAMPLES = 1024
+#: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
+#: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
+#: noise remains there.
+MAX_DIRECT_SAMPLES = 1 << 16
+#: Points per leaf beyond which a leaf that a point or spot light reaches is split instead
+#: (``split_direct``): its error there is the light's fall-off or cone edge over the leaf,
+#: which smaller leaves resolve, not sampling noise.
+SPLIT_DIRECT_SAMPLES = 1024
 #: How a source's radiosity deviation is taken: "measured" over its leaves only, or also
 #: "estimated" from the spread of the light its links bring.
 SOURCE_DEVIATION = "measured"
@@ -336,7 +342,12 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     """Four times the points where a leaf's direct-light error exceeds eps (W)."""
     if not state.scene.light_emitters:
         return False
-    noisy = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] < MAX_DIRECT_SAMPLES)]
+    samples = state.direct_samples[leaves]
+    nodes = state.nodes
+    # (leaves that a point or spot light reaches are split there, if they can be)
+    splits = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & nodes.splittable(state.min_area)[leaves]
+    cap = np.where(splits, SPLIT_DIRECT_SAMPLES, MAX_DIRECT_SAMPLES)
+    noisy = leaves[(direct_power_errors(state, leaves) > eps) & (samples < cap)]
     for samples in np.unique(state.direct_samples[noisy]):
         ids = noisy[state.direct_samples[noisy] == samples]
         direct(state, ids, int(min(4 * samples, MAX_DIRECT_SAMPLES)))
@@ -345,7 +356,7 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
 
 def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     """Split the triangle leaves that a point or spot light reaches and whose direct-light
-    error still exceeds eps (W) at the most points (MAX_DIRECT_SAMPLES): a narrow spot's
+    error still exceeds eps (W) at SPLIT_DIRECT_SAMPLES points: a narrow spot's
     cone or a point light's fall-off on a large triangle is then resolved by smaller ones,
     which get their own points (their links stay on the parent and reach them by the push)."""
     if not state.scene.light_emitters:
@@ -355,7 +366,7 @@ def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     # points stays in the estimate, as splitting would chase the i.i.d. error bound of
     # stratified points over a whole canopy)
     stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_bound[leaves] > 0)
-                   & (state.direct_samples[leaves] >= MAX_DIRECT_SAMPLES) & (nodes.kind[leaves] == TRIANGLE)]
+                   & (state.direct_samples[leaves] >= SPLIT_DIRECT_SAMPLES) & (nodes.kind[leaves] == TRIANGLE)]
     stuck = stuck[nodes.splittable(state.min_area)[stuck]]
     _split_leaves(state, stuck)
     return len(stuck) > 0
@@ -489,8 +500,9 @@ GATHER_SHARE = 0.25
 def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
     """Transfers recv <- src (M,) at the receivers' K points with ``rays`` (M,) shadow rays
     per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
-    point's own visibility (M, K), seconds in the waves)."""
-    out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(3)]
+    point's own visibility (M, K), seconds in the waves, and the mean squared sampled transfer
+    of volume-cluster sources (M, K), transfer.PointTransfers.gv_square)."""
+    out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(4)]
     seconds = 0.0
     for count in np.unique(rays):
         group = np.flatnonzero(rays == count)
@@ -500,8 +512,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
             pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57)
             seconds += time.perf_counter() - t1
             state.rays += pt.rays
-            out[0][idx], out[1][idx], out[2][idx] = pt.g, pt.gv, pt.gv_point
-    return out[0], out[1], out[2], seconds
+            out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
+    return out[0], out[1], out[2], seconds, out[3]
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
@@ -510,14 +522,19 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     point: (form factor with visibility (M,), variance of its visibility noise as irradiance
     (M,) W^2/m^4, seconds in the waves)."""
     nodes = state.nodes
-    g, gv, _, seconds = _point_values(state, patch, src, rays)
+    g, gv, _, seconds, square = _point_values(state, patch, src, rays)
     w = nodes.recv_w[patch].astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
     b = channel_max(solved.b_node[src])
     vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
-    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME)
+    vol = nodes.kind[src] == VOLUME
+    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & ~vol
     var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
+    if vol.any():
+        # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
+        var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
+                                                 ff_unocc[vol], rays[vol])) ** 2
     return ff, var, seconds
 
 
@@ -665,7 +682,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         if not len(recv):
             break
         whole = rays > 1
-        g, _, gv, seconds = _point_values(state, recv, src, np.where(whole, SOURCE_POINTS, 1))
+        g, _, gv, seconds, _ = _point_values(state, recv, src, np.where(whole, SOURCE_POINTS, 1))
         seconds_in_waves += seconds
         evaluated += len(recv)
         smooth, x0, a, grad, rms = smooth_links(nodes, recv, src, g, gv, b_src[src], h_node[recv],

@@ -256,14 +256,14 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
 
 def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
     """One batch of hierarchical-core links on a worker: ``transfer.evaluate``'s per-point
-    arrays g, gv, gv_point (M, K) float32 and the ray count."""
+    arrays g, gv, gv_point, gv_square (M, K) float32 and the ray count."""
     from .transfer import NodeBuffers, evaluate
 
     scene = _worker_scene(key)
     token = nodes_payload[-1][0]
     buffers = _cached("h" + token, lambda: NodeBuffers.upload(_NodeArrays(_assemble(nodes_payload))))
     pt = evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point, seed=seed, offset=offset)
-    return pt.g, pt.gv, pt.gv_point, pt.rays
+    return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays
 
 
 def _preload_task(key: _SceneKey) -> int:
@@ -458,7 +458,7 @@ class DaskEvaluator:
 
         m = len(recv)
         if m == 0:
-            return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(3)), 0)
+            return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(4)), 0)
         t0 = time.perf_counter()
         if self._nodes[0] != len(nodes):
             self._nodes = (len(nodes), self._scatter_rows("nodes", node_arrays(nodes)))
@@ -473,8 +473,8 @@ class DaskEvaluator:
         results = self.client.gather(futures)
         self.timing["run"] += time.perf_counter() - t1
         self.batches += len(futures)
-        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(3)),
-                              int(sum(r[3] for r in results)))
+        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(4)),
+                              int(sum(r[4] for r in results)))
 
     def reference(self, scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                   method: str = "outgoing", chunk: int = 4096):

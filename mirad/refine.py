@@ -163,9 +163,31 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
     n_rays = RECEIVER_POINTS * rays.astype(np.float64)
     vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(vis * (1 - vis), 0, 0.25) / n_rays), 0.0)
+    vol = nodes.kind[src] == VOLUME
+    if vol.any():
+        vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
+                                           rays[vol])
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16))
+
+
+def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, unoccluded: np.ndarray,
+                        rays: np.ndarray) -> np.ndarray:
+    """(M,) standard error of links' Monte Carlo transfers from volume clusters.
+
+    w (M, K): the receiver points' weights; mean, square (M, K): the mean over each point's
+    rays of the sampled transfer and of its square; unoccluded (M,): the transfer had every
+    ray arrived; rays (M,) per point. The samples' variance is pooled over the points (their
+    spread over the receiver counts as noise: conservative), over the sum of w^2 / R. Where
+    every ray was blocked (or none was) the samples' variance is 0 however few they were: a
+    floor of the unoccluded transfer over the ray count stands for the one that might have
+    turned over."""
+    f = (w * mean).sum(axis=1)
+    pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
+    n = RECEIVER_POINTS * rays.astype(np.float64)
+    std = np.sqrt(pooled * (w * w).sum(axis=1) / rays.astype(np.float64))
+    return np.maximum(std, unoccluded / n)
 
 
 def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -254,6 +276,10 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
     kernel_change = np.minimum(1.0, 2.0 * nodes.radius[s] / np.maximum(dist, 1e-300))
     source = scale * links.ff * state.dev[s] * kernel_change
     vol = np.flatnonzero(nodes.kind[s] == VOLUME)
+    # a far cluster's transfer is a Monte Carlo estimate, its error the samples' (the
+    # receiver term above) and its radiosity's variation (the source term); near it (within
+    # its bounding sphere's diameter) the point-to-point kernel says little: bounded there
+    vol = vol[distance_to_source(nodes, r[vol], s[vol]) <= 2.0 * nodes.radius[s[vol]]]
     if len(vol):
         rv, sv = r[vol], s[vol]
         bound = sphere_form_factor_bound(nodes.center[rv], nodes.radius[rv], nodes.center[sv], nodes.radius[sv])

@@ -80,6 +80,8 @@ class PointTransfers:
     g: np.ndarray        # unoccluded form factor at the point
     gv: np.ndarray       # times the link's visibility fraction
     gv_point: np.ndarray  # times the point's own visibility fraction (for the spread)
+    gv_square: np.ndarray  # volume-cluster sources: mean over the point's rays of the squared
+    #                        sampled transfer (its sampling variance); 0 for planar sources
     rays: int            # shadow rays traced
 
 
@@ -123,16 +125,15 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     shadow rays each; ``offset`` lifts ray ends off surfaces (metres)."""
     m = len(recv)
     k = RECEIVER_POINTS
-    g = np.zeros((m, k), np.float32)
-    gv = np.zeros((m, k), np.float32)
-    gp = np.zeros((m, k), np.float32)
+    g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
     rays = 0
     per_launch = max(1, MAX_LANES // (k * rays_per_point))
     for a in range(0, m, per_launch):
         b = min(m, a + per_launch)
-        g[a:b], gv[a:b], gp[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset)
+        g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed,
+                                                        offset)
         rays += ra
-    return PointTransfers(g, gv, gp, rays)
+    return PointTransfers(g, gv, gp, g2, rays)
 
 
 def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: float):
@@ -200,12 +201,13 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = dist * (1 - 1e-4)
     v = dr.select(traced & ~mi_scene.ray_test(ray, traced), 1.0, 0.0)
-    lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, dr.select(traced, 1.0, 0.0)]
+    lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
+             dr.select(traced, 1.0, 0.0)]
     dr.eval(*lanes)
-    sums = [dr.block_sum(a, r_count) for a in lanes[:5]]
-    n_traced = dr.sum(lanes[5])
+    sums = [dr.block_sum(a, r_count) for a in lanes[:6]]
+    n_traced = dr.sum(lanes[6])
     dr.eval(*sums, n_traced)
-    g_e, k_s, kv_s, g_vol, g_vol_v = (np.asarray(a.numpy(), np.float64).reshape(m, k) for a in sums)
+    g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (np.asarray(a.numpy(), np.float64).reshape(m, k) for a in sums)
     g_e /= r_count
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
     # for the transfer and at each point for its spread; a point none of whose rays could be
@@ -219,7 +221,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     gv_link = g_e * vis_link + g_vol_v / r_count
     gv_point = g_e * vis_point + g_vol_v / r_count
     return (g_out.astype(np.float32), gv_link.astype(np.float32), gv_point.astype(np.float32),
-            int(round(float(n_traced[0]))))
+            (g_vol_sq / r_count).astype(np.float32), int(round(float(n_traced[0]))))
 
 
 def pattern_size(rays_per_point: int) -> int:

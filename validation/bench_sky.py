@@ -25,7 +25,7 @@ import numpy as np
 
 import mirad
 from mirad import emitters
-from mirad.core import MAX_DIRECT_SAMPLES
+from mirad.core import MAX_DIRECT_SAMPLES  # (a safety cap, far above what the tolerances ask)
 from mirad.metrics import compare
 from mirad.reference import cached_reference
 
