@@ -341,3 +341,36 @@ def test_furnace_with_occluders_every_triangle_within_tolerance():
     assert np.abs(b / exact - 1).max() <= tol
     assert abs(np.average(b, weights=sol.triangle_area) / exact - 1) <= 0.005
     assert sol.stats["estimated_error"] <= tol
+
+
+def test_far_volume_cluster_links_know_their_sampling_error():
+    """A link from a volume cluster is a Monte Carlo transfer; its standard error
+    (refine.volume_transfer_std) must match the spread of the transfer over independent
+    seeds. Each link draws its own points on the source, so the seeds' mean converges to one
+    value and the spread follows the ray count."""
+    from mirad.refine import link_values
+    from mirad.transfer import NodeBuffers, evaluate
+
+    scene = mirad.load_scene(SCENES / "plant-canopy" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    vol = np.flatnonzero(nodes.kind == core.VOLUME)
+    tri = np.flatnonzero(nodes.kind == core.TRIANGLE)
+    rng = np.random.default_rng(3)
+    recv = rng.choice(tri, 400)
+    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 400)
+    far = core.distance_to_source(nodes, recv, src) > 2.0 * nodes.radius[src]
+    recv, src = recv[far], src[far]
+    rays = np.full(len(recv), 4, np.int16)
+    buffers = NodeBuffers.upload(nodes)
+    runs = [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=4, seed=seed,
+                                                   offset=state.offset), rays)
+            for seed in range(12)]
+    ff = np.array([r.ff for r in runs], np.float64)
+    predicted = np.mean([r.vis_std for r in runs], axis=0)
+    seen = ff.mean(axis=0) > 0
+    assert seen.sum() > 50
+    # pooled over the links: the predicted standard errors against the seeds' spread (the
+    # pooled variance counts the light's spread over the receiver as noise: conservative)
+    ratio = np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1)))
+    assert 0.8 < ratio < 3.0, ratio
