@@ -648,6 +648,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     nodes, links, leaves = state.nodes, state.links, solved.leaves
     n, n_leaf = len(nodes), len(leaves)
     below = ancestor_matrix(nodes, leaves).T.tocsr()        # (N, L): leaves (their positions) below a node
+    visible = below @ (nodes.area[leaves] * (1.0 - state.buried[leaves]))
+    varies = children_deviation(nodes, solved.b_node, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
+    tol = state.settings.tolerance
     centroid = nodes.poly[leaves, :3].mean(axis=1)
     position = np.full(n, -1, np.int64)
     position[leaves] = np.arange(n_leaf)
@@ -718,10 +721,20 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
-    for _ in range(tree_depth(nodes)):
+    for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         dist = distance_to_source(nodes, pair_node, pair_src)
-        split = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
-            (nodes.kind[pair_src] == FACE) & (g_ff > 0)
+        overhang = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
+            (nodes.kind[pair_src] == FACE)
+        # a source whose children differ, as seen across it from the leaf (refine.power_errors'
+        # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
+        # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
+        # h F b (``gather_allowance``)
+        centre = np.linalg.norm(nodes.center[pair_node] - nodes.center[pair_src], axis=1)
+        change = np.minimum(1.0, 2.0 * nodes.radius[pair_src] / np.maximum(centre, 1e-300))
+        error = g_ff * b_src[pair_src] * varies[pair_src] * change
+        uneven = error ** 2 > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
+        split = (overhang | uneven) & (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & \
+            (nodes.kind[pair_src] != VOLUME)
         if not split.any():
             break
         kids = nodes.children[pair_src[split]]
@@ -808,6 +821,24 @@ def source_state(state: State, solved: Solved) -> SourceState:
     per_recv = np.bincount(links.recv[face], weights=raw[face], minlength=n)
     quad = float(np.sqrt(np.sum(per_recv ** 2)))
     return replace(source, mean_weight=per_recv / quad if quad > 0 else np.zeros(n))
+
+
+def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """(N,) W/m^2: how far each node's children's mean radiosities (b_node (N, C)) are from its
+    own, weighted by the children's visible areas ``visible`` (N,) (brightest channel; 0 for
+    leaves).
+
+    What sending a node's light with its mean radiosity misses is the part of its variation
+    that follows the kernel across it: a smooth, low-order part, which its children's means
+    show, while the leaves' own spread (on a finely meshed wall mostly sampling noise) follows
+    no kernel."""
+    kids = nodes.children
+    has = kids >= 0
+    safe = np.where(has, kids, 0)
+    w = np.where(has, visible[safe], 0.0)
+    d = np.abs(b_node[safe] - b_node[:, None, :]).max(axis=2)
+    total = w.sum(axis=1)
+    return np.where(total > 0, (w * d).sum(axis=1) / np.maximum(total, 1e-300), 0.0)
 
 
 def amplification(state: State, solved: Solved) -> float:
