@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import BandTableError
+from .files import read_csv_text
 
 __all__ = ["BandTable", "read_band_table", "band_table", "with_bands", "emitter_ids", "channel_names",
            "BAND_COLUMNS", "DEFAULT_ID"]
@@ -93,22 +94,19 @@ class BandTable:
 # Reading
 # ------------------------------------------------------------------------------------------
 
+
+def did_you_mean(word: str, choices) -> str:
+    """" (did you mean 'X'?)" for the closest of ``choices`` to ``word``, or ""."""
+    close = difflib.get_close_matches(word, list(choices), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
 def read_band_table(path) -> BandTable:
     """A band table from a CSV file (UTF-8; a header naming ``band``, ``id`` and value columns;
     ``#`` lines are comments; blank lines skipped). BandTableError naming the file and line for an
     unreadable file, missing or unknown columns, or a cell that is not a finite number."""
     path = Path(path)
-    if not path.is_file():
-        raise BandTableError(f"band table '{path}' does not exist; give a CSV file with a header "
-                             f"{','.join(BAND_COLUMNS)} (docs/bands.md)")
-    raw = path.read_bytes()
-    try:
-        if b"\0" in raw:
-            raise UnicodeDecodeError("utf-8", raw, 0, 1, "NUL byte")
-        text = raw.decode("utf-8-sig")          # a byte-order mark (Excel's "CSV UTF-8") is dropped
-    except UnicodeDecodeError:
-        raise BandTableError(f"band table '{path}' is not a text CSV (binary or not UTF-8); save it as UTF-8 "
-                             f"text with a header {','.join(BAND_COLUMNS)}") from None
+    text = read_csv_text(path, "band table", f"{','.join(BAND_COLUMNS)} (docs/bands.md)", BandTableError)
     reader = csv.reader(io.StringIO(text, newline=""))
     rows, lines = [], []
     for row in reader:                       # parsing text: one row at a time
@@ -170,8 +168,7 @@ def _check_header(source: str, header: list) -> None:
                              f"{', '.join(VALUE_COLUMNS)}")
     unknown = [c for c in header if c not in BAND_COLUMNS]
     if unknown:
-        close = difflib.get_close_matches(unknown[0], BAND_COLUMNS, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(unknown[0], BAND_COLUMNS)
         raise BandTableError(f"band table {source!r}: unknown column '{unknown[0]}'{hint}; the columns are "
                              f"{', '.join(BAND_COLUMNS)}")
     if len(set(header)) != len(header):
@@ -306,8 +303,7 @@ def _select_bands(table: BandTable, bands) -> list:
         raise BandTableError(f"no bands chosen from band table {table.source!r}; name some of {', '.join(known)}")
     unknown = [b for b in bands if b not in known]
     if unknown:
-        close = difflib.get_close_matches(unknown[0], known, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(unknown[0], known)
         raise BandTableError(f"band '{unknown[0]}' is not in band table {table.source!r}{hint}; its bands are "
                              f"{', '.join(known)}")
     if len(set(bands)) != len(bands):
@@ -342,8 +338,7 @@ def _resolve(scene, table: BandTable, names: list) -> dict:
     light_of = {lid: e for e, lid in enumerate(light_ids)}
     for k in np.flatnonzero(~np.isin(table.id, shape_ids + light_ids + [DEFAULT_ID])):
         known = shape_ids + light_ids
-        close = difflib.get_close_matches(table.id[k], known, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        hint = did_you_mean(table.id[k], known)
         shown = ", ".join(f"'{i}'" for i in known[:12]) + (f" and {len(known) - 12} more" if len(known) > 12 else "")
         raise BandTableError(f"{table.where(k)} (band '{table.band[k]}'): the scene has no shape or emitter "
                              f"'{table.id[k]}'{hint}; its ids are {shown} (or {DEFAULT_ID} for a band's default "

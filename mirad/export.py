@@ -23,7 +23,7 @@ import numpy as np
 from .arrays import group_mean, group_sum, to_point3, to_vector3
 from .bands import channel_names, is_band_result
 from .errors import OutputError, SettingsError
-from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_exr
+from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_csv_text, read_exr
 from .organs import ORGAN_KINDS, triangle_components, triangle_groups
 
 __all__ = ["write_ply", "refined_mesh", "absorbed_power", "triangle_table", "shape_summary", "write_table", "write_shape_summary",
@@ -356,17 +356,7 @@ def read_points(path) -> tuple:
     Returns (points (P, 3) float, normals (P, 3) float). Raises SettingsError naming the file and
     the problem (missing columns, a value that is not a finite number, a zero normal).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise SettingsError(f"points file '{path}' does not exist; give a CSV with columns {','.join(PROBE_COLUMNS)}")
-    raw = path.read_bytes()
-    try:
-        if b"\0" in raw:
-            raise UnicodeDecodeError("utf-8", raw, 0, 1, "NUL byte")
-        text = raw.decode("utf-8-sig")          # a byte-order mark (Excel's "CSV UTF-8") is dropped
-    except UnicodeDecodeError:
-        raise SettingsError(f"points file '{path}' is not a text CSV (binary or not UTF-8); save it as "
-                            f"UTF-8 text with a header {','.join(PROBE_COLUMNS)}") from None
+    text = read_csv_text(path, "points file", ",".join(PROBE_COLUMNS), SettingsError)
     rows = [row for row in csv.reader(io.StringIO(text, newline="")) if row and any(cell.strip() for cell in row)]
     if not rows:
         raise SettingsError(f"points file '{path}' is empty; give a header {','.join(PROBE_COLUMNS)} and one row per point")

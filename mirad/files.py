@@ -179,3 +179,20 @@ def png_bytes(rgb8: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(rgb8, dtype=np.uint8), "RGB").save(buffer, format="PNG")
     return buffer.getvalue()
+
+
+def read_csv_text(path: Path, what: str, columns: str, error) -> str:
+    """The text of the CSV file ``path`` (a byte-order mark dropped), or ``error`` (an exception
+    class) naming ``what`` the file is ("band table", "points file") and the ``columns`` its
+    header should hold, where the file is missing, binary or not UTF-8."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{what} '{path}' does not exist; give a CSV file with a header {columns}")
+    raw = path.read_bytes()
+    try:
+        if b"\0" in raw:
+            raise UnicodeDecodeError("utf-8", raw, 0, 1, "NUL byte")
+        return raw.decode("utf-8-sig")          # a byte-order mark (Excel's "CSV UTF-8") is dropped
+    except UnicodeDecodeError:
+        raise error(f"{what} '{path}' is not a text CSV (binary or not UTF-8); save it as UTF-8 text with a "
+                    f"header {columns}") from None
