@@ -374,3 +374,21 @@ def test_far_volume_cluster_links_know_their_sampling_error():
     # pooled variance counts the light's spread over the receiver as noise: conservative)
     ratio = np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1)))
     assert 0.8 < ratio < 3.0, ratio
+
+
+def test_children_deviation_weighs_the_childrens_visible_areas():
+    """A node's children's deviation from its mean (core.children_deviation): the visible-area
+    weighted mean of |B_child - B_node| over its children, brightest channel, 0 on leaves."""
+    scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    rng = np.random.default_rng(5)
+    b = rng.random((len(nodes), 3))
+    visible = rng.random(len(nodes)) + 0.1
+    dev = core.children_deviation(nodes, b, visible)
+    inner = np.flatnonzero(nodes.children[:, 0] >= 0)
+    assert np.all(dev[nodes.children[:, 0] < 0] == 0)
+    for k in inner[:20]:
+        kids = nodes.children[k][nodes.children[k] >= 0]
+        expect = np.sum(visible[kids] * np.abs(b[kids] - b[k]).max(axis=1)) / visible[kids].sum()
+        assert dev[k] == pytest.approx(expect, rel=1e-12)
