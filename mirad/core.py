@@ -50,8 +50,8 @@ MAX_DIRECT_SAMPLES = 1 << 16
 #: (``split_direct``): its error there is the light's fall-off or cone edge over the leaf,
 #: which smaller leaves resolve, not sampling noise.
 SPLIT_DIRECT_SAMPLES = 1024
-#: Share of the error budget the direct light of point/spot/sun/sky emitters may hold before
-#: its leaves get more points (``resample_direct``) or are split (``split_direct``).
+#: Share of the current estimate the direct light of point/spot/sun/sky emitters may hold
+#: before its leaves get more points (``resample_direct``) or are split (``split_direct``).
 DIRECT_SHARE = 0.25
 #: How a source's radiosity deviation is taken: "measured" over its leaves only, or also
 #: "estimated" from the spread of the light its links bring.
@@ -971,9 +971,9 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
             leaves = state.nodes.leaves
             resampled = False
             # more points (or smaller leaves) for the direct light only while its error holds
-            # more than its share of the budget: otherwise the passes that the links still need
-            # would each quadruple the points of every leaf over eps, for nothing
-            if float(est.direct.sum()) > DIRECT_SHARE * budget:
+            # more than DIRECT_SHARE of the estimate: otherwise the passes that the links still
+            # need would each quadruple the points of every leaf over eps, for nothing
+            if float(est.direct.sum()) > DIRECT_SHARE * est.relative * state.total_area * est.reference_mean:
                 resampled = resample_direct(state, leaves, eps)
                 resampled |= split_direct(state, leaves, eps)
             # one wave per pass: the children's errors are judged after the next solve, from
