@@ -286,9 +286,9 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
         nodes = state.nodes
         mi_scene = state.scene.mi_scene
         share = buried_fraction(mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset)
-        partial = ids[(share > 0) & (share < 1)]
-        share[(share > 0) & (share < 1)] = 0.0
-        state.buried[ids] = share
+        some = (share > 0) & (share < 1)
+        state.buried[ids] = np.where(some, 0.0, share)
+        partial = ids[some]
         for a in range(0, len(partial), BURIED_CHUNK):
             part = partial[a:a + BURIED_CHUNK]
             pts, nrm = triangle_samples(nodes, part, BURIED_POINTS, state.settings.seed)
@@ -345,12 +345,11 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     """Four times the points where a leaf's direct-light error exceeds eps (W)."""
     if not state.scene.light_emitters:
         return False
-    samples = state.direct_samples[leaves]
     nodes = state.nodes
     # (leaves that a point or spot light reaches are split there, if they can be)
     splits = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & nodes.splittable(state.min_area)[leaves]
     cap = np.where(splits, SPLIT_DIRECT_SAMPLES, MAX_DIRECT_SAMPLES)
-    noisy = leaves[(direct_power_errors(state, leaves) > eps) & (samples < cap)]
+    noisy = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] < cap)]
     for samples in np.unique(state.direct_samples[noisy]):
         ids = noisy[state.direct_samples[noisy] == samples]
         direct(state, ids, int(min(4 * samples, MAX_DIRECT_SAMPLES)))

@@ -46,7 +46,6 @@ class NodeBuffers:
     recv_nrm: object
     child: tuple         # two mi.UInt32 (N,): a cluster's children (a triangle: itself)
     curve: tuple         # centre, axis (mi.Vector3f) and radius (mi.Float) of a triangle's true surface
-    cluster_depth: int   # most cluster levels above a triangle
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
@@ -58,19 +57,7 @@ class NodeBuffers:
         return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
                    to_float(nodes.fill), to_float(nodes.area), mi.UInt32(np.asarray(nodes.kind, np.uint32)),
                    points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
-                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
-                   cluster_depth(nodes.kind, child))
-
-
-def cluster_depth(kind: np.ndarray, child: np.ndarray) -> int:
-    """Most cluster levels between any node and the triangles below it (``cluster_children``)."""
-    depth = np.zeros(len(kind), np.int64)
-    clusters = np.flatnonzero(np.asarray(kind) != TRIANGLE)
-    while True:
-        new = 1 + np.maximum(depth[child[clusters, 0]], depth[child[clusters, 1]])
-        if np.array_equal(new, depth[clusters]):
-            return int(depth.max())
-        depth[clusters] = new
+                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])))
 
 
 @dataclass
