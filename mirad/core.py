@@ -428,6 +428,15 @@ def transmission(state: State, leaves: np.ndarray) -> tuple[np.ndarray | None, s
     return tau, (pick @ mean).tocsr()
 
 
+def sent_emission(state: State, leaves: np.ndarray) -> np.ndarray:
+    """(L, C) W/m^2: the emitted radiosity of the leaves as the system carries it, a mean over
+    each leaf's whole area with its buried part dark, like the reflected light (the pull
+    spreads a node's power over its visible area). An emitter's buried part still emits
+    (its outgoing radiance, as a path tracer measures it) but sends that light nowhere:
+    ``_solution`` adds it back to the reported radiosity."""
+    return state.patch_emission[state.nodes.patch[leaves]] * (1.0 - state.buried[leaves])[:, None]
+
+
 def solve(state: State, previous: Solved | None) -> Solved:
     """Stage solve: radiosity of the leaves for the current links, warm-started."""
     t = time.perf_counter()
@@ -452,7 +461,7 @@ def solve(state: State, previous: Solved | None) -> Solved:
     rho = state.patch_rho[nodes.patch[leaves]]
     system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, np.zeros_like(rho), tau, opposite)
     # the direct light of point, sun and sky emitters is scattered like any other
-    system.emission = state.patch_emission[nodes.patch[leaves]] + system.scatter(state.direct[leaves])
+    system.emission = sent_emission(state, leaves) + system.scatter(state.direct[leaves])
     emission = system.emission
     if previous is None:
         x0 = emission.copy()
@@ -848,7 +857,7 @@ def amplification(state: State, solved: Solved) -> float:
     in a furnace): how much interreflection multiplies an error in gathered light."""
     system = solved.system
     area = state.nodes.area[solved.leaves][:, None]
-    emitted = state.patch_emission[state.nodes.patch[solved.leaves]]
+    emitted = sent_emission(state, solved.leaves)
     first = system.emission - emitted + system.scatter(system.gather(emitted))
     total = float((area * (solved.b_leaf - emitted)).sum())
     once = float((area * first).sum())
@@ -858,7 +867,7 @@ def amplification(state: State, solved: Solved) -> float:
 def reflected_mean(state: State, solved: Solved) -> float:
     """Area-weighted mean reflected radiosity B - E over the leaves (mean over channels)."""
     leaves = solved.leaves
-    reflected = np.maximum(solved.b_leaf - state.patch_emission[state.nodes.patch[leaves]], 0.0)
+    reflected = np.maximum(solved.b_leaf - sent_emission(state, leaves), 0.0)
     area = state.nodes.area[leaves]
     mean = float((area[:, None] * reflected).sum() / max(area.sum() * reflected.shape[1], 1e-300))
     return mean if mean > 0 else 1e-300
@@ -1020,7 +1029,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
     leaves = solved.leaves
     system = solved.system
     h_leaf = gathered.irradiance + state.direct[leaves]
-    b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0)
+    buried_emission = state.patch_emission[nodes.patch[leaves]] * state.buried[leaves][:, None]
+    b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0) + buried_emission
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
     err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
         (est.direct + gathered.noise_power) / nodes.area[leaves]
