@@ -328,6 +328,19 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     state.timing["direct"] += time.perf_counter() - t
 
 
+def direct_of_new_leaves(state: State) -> None:
+    """Direct light of the leaves that have none yet (made by splits): a child keeps its
+    parent's density of points (a quarter of them for a quarter of the area), at least the
+    initial count."""
+    new = state.nodes.leaves
+    new = new[state.direct_samples[new] == 0]
+    parent = state.nodes.parent[new]
+    from_parent = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // 4, 0)
+    count = np.maximum(from_parent, min(state.settings.samples_per_link, MAX_DIRECT_SAMPLES))
+    for samples in np.unique(count):
+        direct(state, new[count == samples], int(samples))
+
+
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     """(L,) expected absolute error of each leaf's direct light as power, W."""
     if ERRORS_OF == "radiosity":
@@ -437,15 +450,12 @@ def sent_emission(state: State, leaves: np.ndarray) -> np.ndarray:
     return state.patch_emission[state.nodes.patch[leaves]] * (1.0 - state.buried[leaves])[:, None]
 
 
-def solve(state: State, previous: Solved | None) -> Solved:
-    """Stage solve: radiosity of the leaves for the current links, warm-started."""
-    t = time.perf_counter()
+def leaf_system(state: State, leaves: np.ndarray, links: sp.csr_matrix, same: LeafSystem | None = None) -> LeafSystem:
+    """The system B = E + rho push F pull B over ``leaves`` (L,) with transfers ``links``
+    (N, N); ``same``: a system over the same leaves and nodes, whose push and pull it reuses."""
     nodes = state.nodes
-    leaves = nodes.leaves
-    if previous is not None and previous.system.push.shape[1] == len(nodes):
-        # no node made since (leaves and buried shares unchanged): the same push and pull
-        push, pull = previous.system.push, previous.system.pull
-        tau, opposite = previous.system.tau, previous.system.opposite
+    if same is not None:
+        push, pull, tau, opposite = same.push, same.pull, same.tau, same.opposite
     else:
         tau, opposite = transmission(state, leaves)
         push = ancestor_matrix(nodes, leaves)
@@ -459,23 +469,35 @@ def solve(state: State, previous: Solved | None) -> Solved:
         # buried points unlit) lands on its visible leaves, times its area over the visible
         push = (sp.diags(1.0 - state.buried[leaves]) @ push @ sp.diags(scale * nodes.area)).tocsr()
     rho = state.patch_rho[nodes.patch[leaves]]
-    system = LeafSystem(push, state.links.matrix(len(nodes)), pull, rho, np.zeros_like(rho), tau, opposite)
+    system = LeafSystem(push, links, pull, rho, np.zeros_like(rho), tau, opposite)
     # the direct light of point, sun and sky emitters is scattered like any other
     system.emission = sent_emission(state, leaves) + system.scatter(state.direct[leaves])
-    emission = system.emission
-    if previous is None:
-        x0 = emission.copy()
-    else:
-        # leaves made since the last solve start from their ancestors' radiosity
-        b_node = np.zeros((len(nodes), state.channels))
-        n_prev = len(previous.b_node)
-        b_node[:n_prev] = previous.b_node
-        grown = np.arange(n_prev, len(nodes))
-        if len(grown):
-            # a new node's parent is older than it; one step per subdivision level
-            for _ in range(int(nodes.depth[grown].max()) + 1):
-                b_node[grown] = b_node[nodes.parent[grown]]
-        x0 = b_node[leaves]
+    return system
+
+
+def inherited(state: State, b_node: np.ndarray, leaves: np.ndarray) -> np.ndarray:
+    """(L, C): the radiosity b_node (N', C) of nodes that existed, for ``leaves``; a node made
+    since takes its ancestors' (a warm start)."""
+    nodes = state.nodes
+    out = np.zeros((len(nodes), b_node.shape[1]))
+    out[:len(b_node)] = b_node
+    grown = np.arange(len(b_node), len(nodes))
+    if len(grown):
+        # a new node's parent is older than it; one step per subdivision level
+        for _ in range(int(nodes.depth[grown].max()) + 1):
+            out[grown] = out[nodes.parent[grown]]
+    return out[leaves]
+
+
+def solve(state: State, previous: Solved | None) -> Solved:
+    """Stage solve: radiosity of the leaves for the current links, warm-started."""
+    t = time.perf_counter()
+    nodes = state.nodes
+    leaves = nodes.leaves
+    same = previous is not None and previous.system.push.shape[1] == len(nodes)
+    # (no node made since: leaves and buried shares unchanged, the same push and pull)
+    system = leaf_system(state, leaves, state.links.matrix(len(nodes)), previous.system if same else None)
+    x0 = system.emission.copy() if previous is None else inherited(state, previous.b_node, leaves)
     # a pass's solve only steers refinement (the final gather solves again to
     # solver_tolerance): a residual far under the error tolerance is enough
     tol = max(state.settings.solver_tolerance, PASS_SOLVE_SHARE * state.settings.tolerance)
@@ -483,7 +505,7 @@ def solve(state: State, previous: Solved | None) -> Solved:
                                            max_iterations=state.settings.max_iterations)
     b = np.maximum(b, 0.0)
     state.timing["solve"] += time.perf_counter() - t
-    return Solved(leaves, system, b, pull @ b, iterations, residual)
+    return Solved(leaves, system, b, system.pull @ b, iterations, residual)
 
 
 @dataclass
@@ -495,8 +517,13 @@ class Gathered:
     noise_power: np.ndarray
     iterations: int = 0          # of the solve on the gathered system
     pairs: int = 0               # (receiver, source) pairs evaluated
+    leaves: np.ndarray | None = None     # (L',) the leaves after the gather's own splits
+    system: LeafSystem | None = None     # the gathered system over them
+    regathered: np.ndarray | None = None  # (M,) bool: links whose transfers it replaced
 
 
+#: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
+MAX_SHADOW_SPLITS = 6
 #: Most (receiver, source) pairs per final-gather wave (bounds its memory: ~100 B a pair).
 GATHER_CHUNK = 1 << 18
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair
@@ -528,12 +555,13 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
-                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Transfers patch <- src (M,) at the patches' points with ``rays`` (M,) shadow rays per
     point: (form factor with visibility (M,), variance of its visibility noise as irradiance
-    (M,) W^2/m^4, seconds in the waves)."""
+    (M,) W^2/m^4, variance of its points' quadrature of the visibility (``shadow_variance``),
+    seconds in the waves)."""
     nodes = state.nodes
-    g, gv, _, seconds, square = _point_values(state, patch, src, rays)
+    g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays)
     w = nodes.recv_w[patch].astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
@@ -546,7 +574,27 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
         # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
         var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
                                                  ff_unocc[vol], rays[vol])) ** 2
-    return ff, var, seconds
+    spatial = np.where(partial, b * b * shadow_variance(w, g.astype(np.float64), gv_point.astype(np.float64), rays), 0.0)
+    return ff, var, spatial, seconds
+
+
+def shadow_variance(w: np.ndarray, g: np.ndarray, gv_point: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(M,) squared form-factor error of a K-point quadrature of the visibility over the
+    receiver: a shadow edge across the receiver falls between its fixed points, and more
+    rays at those points do not move it.
+
+    w (M, K) the points' weights; g (M, K) their unoccluded transfers, gv_point (M, K) with
+    each point's own visibility over ``rays`` (M,) rays. The points' visibilities v_k differ
+    by the shadow and by their rays' noise; less the noise's expected share
+    (v_k (1 - v_k) / (R - 1)), their weighted spread over K points, as for K samples,
+    times the unoccluded transfer squared. Zero with one ray per point (spread and noise are
+    one there)."""
+    ff_unocc = (w * g).sum(axis=1)
+    v = np.where(g > 0, gv_point / np.where(g > 0, g, 1.0), 1.0)
+    vis = (w * g * v).sum(axis=1) / np.where(ff_unocc > 0, ff_unocc, 1.0)
+    r = rays.astype(np.float64)[:, None]
+    spread = (w * ((v - vis[:, None]) ** 2 - v * (1 - v) / np.maximum(r - 1, 1))).sum(axis=1)
+    return np.where(rays > 1, ff_unocc ** 2 * np.maximum(spread, 0.0) / RECEIVER_POINTS, 0.0)
 
 
 def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
@@ -626,6 +674,14 @@ def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
     return (GATHER_SHARE * tolerance) ** 2 * np.maximum(h_recv * ff * b_src, 0.0)
 
 
+def output_share(state: State, ids: np.ndarray) -> np.ndarray:
+    """(M,) the share of its input triangle's area that each triangle node ids is: the
+    output is per input triangle, the mean over its leaves, so independent errors of the
+    leaves of one triangle weigh by that share in its variance."""
+    nodes = state.nodes
+    return nodes.area[ids] / np.maximum(state.scene.tri_area[state.scene.patch_tri[nodes.patch[ids]]], 1e-300)
+
+
 def _leaf_positions_below(below: sp.csr_matrix, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions (in the leaf list) of the leaves below nodes ids, and which id each is under."""
     start = below.indptr[ids]
@@ -653,7 +709,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     evaluate the link at their own points, down to the leaves, which evaluate it with their
     own quadrature points and shadow rays. Receivers can so stay coarse where the light is
     smooth while every leaf still gets its own share, shadows included. Links on a leaf are
-    already its own.
+    already its own. A leaf whose points a shadow crosses finer than they resolve
+    (``shadow_variance`` over its share of the tolerance) is split, and gathers that light
+    at its children's points; the gathered system is then over the new leaves.
     """
     t = time.perf_counter()
     nodes, links, leaves = state.nodes, state.links, solved.leaves
@@ -714,7 +772,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own]
     pair_node, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
-    g_ff, g_var, seconds = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
+    g_ff, g_var, g_shadow, seconds = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     seconds_in_waves += seconds
     # pairs whose few rays disagreed more than their share of the tolerance allows are
     # evaluated again with four times the rays, up to a ray to each of the source's points
@@ -725,8 +783,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         if not len(noisy):
             break
         pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
-        g_ff[noisy], g_var[noisy], seconds = _evaluate_pairs(state, solved, pair_node[noisy], pair_src[noisy],
-                                                             pair_rays[noisy])
+        g_ff[noisy], g_var[noisy], g_shadow[noisy], seconds = _evaluate_pairs(state, solved, pair_node[noisy],
+                                                                              pair_src[noisy], pair_rays[noisy])
         seconds_in_waves += seconds
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
@@ -751,45 +809,79 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         kids = nodes.children[pair_src[split]]
         own, slot = np.nonzero(kids >= 0)
         k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
-        k_ff, k_var, k_seconds = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        k_ff, k_var, k_shadow, k_seconds = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
         seconds_in_waves += k_seconds
         pair_node = np.concatenate([pair_node[~split], k_node])
         pair_src = np.concatenate([pair_src[~split], k_src])
         pair_rays = np.concatenate([pair_rays[~split], k_rays])
         g_ff = np.concatenate([g_ff[~split], k_ff])
         g_var = np.concatenate([g_var[~split], k_var])
-    pair_leaf = position[pair_node]
-    var = np.bincount(pair_leaf, weights=g_var, minlength=n_leaf).astype(np.float64)   # (int when empty)
-    for part in smooth_parts:
-        var += np.bincount(part[0], weights=part[3], minlength=n_leaf)
-    gathered_pairs = len(pair_leaf)
-    pair_leaf = np.concatenate([pair_leaf] + [p[0] for p in smooth_parts])
-    pair_src = np.concatenate([pair_src] + [p[1] for p in smooth_parts])
-    g_ff = np.concatenate([g_ff] + [p[2] for p in smooth_parts])
+        g_shadow = np.concatenate([g_shadow[~split], k_shadow])
+    # leaves that a shadow crosses, where their points' quadrature of it errs by more than
+    # the pair's share of the tolerance, are split and gather that light at their children's
+    # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
+    h_node = h_node.copy()
+    stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
+    for _ in range(MAX_SHADOW_SPLITS):
+        over = (g_shadow * output_share(state, pair_node) > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
+                                                                           tol)) & \
+            (nodes.kind[pair_node] == TRIANGLE) & nodes.splittable(state.min_area)[pair_node]
+        if not over.any():
+            break
+        ids = np.unique(pair_node[over])
+        n_before = len(nodes)
+        _split_leaves(state, ids)
+        direct_of_new_leaves(state)
+        h_node = np.concatenate([h_node, h_node[nodes.parent[n_before:]]])
+        on_split = np.isin(pair_node, ids)
+        rest = on_split & ~over
+        stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest]))
+        kids = nodes.children[pair_node[over]]
+        own, slot = np.nonzero(kids >= 0)
+        k_node, k_src, k_rays = kids[own, slot].astype(np.int64), pair_src[over][own], pair_rays[over][own]
+        k_ff, k_var, k_shadow, k_seconds = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        seconds_in_waves += k_seconds
+        evaluated += len(k_node)
+        keep = ~on_split
+        pair_node, pair_src, pair_rays = (np.concatenate([a[keep], k]) for a, k in
+                                          ((pair_node, k_node), (pair_src, k_src), (pair_rays, k_rays)))
+        g_ff, g_var, g_shadow = (np.concatenate([a[keep], k]) for a, k in
+                                 ((g_ff, k_ff), (g_var, k_var), (g_shadow, k_shadow)))
+    gathered_pairs = len(pair_node)
+    n = len(nodes)
+    final_leaves = nodes.leaves
+    # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
+    # variance of its error: visibility noise, the shadow's quadrature, fit residuals
+    recv = np.concatenate([pair_node] + [p[0] for p in stay] + [leaves[p[0]] for p in smooth_parts])
+    srcs = np.concatenate([pair_src] + [p[1] for p in stay] + [p[1] for p in smooth_parts])
+    ff = np.concatenate([g_ff] + [p[2] for p in stay] + [p[2] for p in smooth_parts])
+    var_node = np.bincount(recv, weights=np.concatenate([g_var + g_shadow] + [p[3] for p in stay] +
+                                                        [p[3] for p in smooth_parts]), minlength=n)
+    var = ancestor_matrix(nodes, final_leaves) @ var_node
     # the system again, with every link on an inner node replaced by its leaves' own
-    # transfers (L, N): each leaf then gathers from the sources' means what reaches its own
-    # points, and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered
-    # mean counts its buried points as unlit; it lands on its visible part, as in ``solve``
-    # (a factor 1, or 0 for a leaf wholly buried)
-    gathered = sp.csr_matrix((g_ff, (pair_leaf, pair_src)), shape=(n_leaf, n))
+    # transfers: each leaf then gathers from the sources' means what reaches its own points,
+    # and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered mean
+    # counts its buried points as unlit; it lands on its visible part, as in ``solve``
     keep = np.flatnonzero(~inner[links.recv])
-    own = sp.csr_matrix((links.ff[keep].astype(np.float64), (links.recv[keep], links.src[keep])), shape=(n, n))
-    to_leaf = sp.diags((state.buried[leaves] < 1.0).astype(np.float64)).tocsr()
-    system = solved.system
-    final = LeafSystem(sp.hstack([system.push, to_leaf]).tocsr(), sp.vstack([own, gathered]).tocsr(), system.pull,
-                       system.rho, system.emission, system.tau, system.opposite)
+    transfers = sp.csr_matrix((np.concatenate([links.ff[keep].astype(np.float64), ff]),
+                               (np.concatenate([links.recv[keep], recv]), np.concatenate([links.src[keep], srcs]))),
+                              shape=(n, n))
+    same = len(final_leaves) == n_leaf
+    final = leaf_system(state, final_leaves, transfers, solved.system if same else None)
+    start = solved.b_node.copy()
+    start[leaves] = solved.b_leaf
     t1 = time.perf_counter()
-    b, iterations, _ = solve_system(final, solved.b_leaf, method=state.settings.solver,
+    b, iterations, _ = solve_system(final, inherited(state, start, final_leaves), method=state.settings.solver,
                                     tol=state.settings.solver_tolerance,
                                     max_iterations=state.settings.max_iterations)
     solve_time = time.perf_counter() - t1
     state.timing["solve"] += solve_time
     h_leaf = final.gather(np.maximum(b, 0.0))
-    rho = channel_max(state.patch_rho[nodes.patch[leaves]])
-    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[leaves] * np.sqrt(var)
+    rho = channel_max(state.patch_rho[nodes.patch[final_leaves]])
+    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[final_leaves] * np.sqrt(var)
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
-    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated)
+    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final, inner[links.recv])
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -921,10 +1013,13 @@ def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate
     means (those links' receiver terms) are gone from the output, and the gather's own
     visibility noise and fit residuals take their place. Source terms, links on leaves and
     the direct light keep theirs."""
-    regathered = state.nodes.children[state.links.recv, 0] >= 0
-    receiver = np.where(regathered, 0.0, est.receiver)
-    total = float(receiver.sum() + est.source.sum() + est.direct.sum() + gathered.noise_power.sum())
-    return replace(est, receiver=receiver, relative=total / max(state.total_area * est.reference_mean, 1e-300))
+    receiver = np.where(gathered.regathered, 0.0, est.receiver)
+    # (the gather may have split leaves: their direct light is their own)
+    direct = direct_power_errors(state, gathered.leaves) if state.scene.light_emitters else \
+        np.zeros(len(gathered.leaves))
+    total = float(receiver.sum() + est.source.sum() + direct.sum() + gathered.noise_power.sum())
+    return replace(est, receiver=receiver, direct=direct,
+                   relative=total / max(state.total_area * est.reference_mean, 1e-300))
 
 
 # ------------------------------------------------------------------------------------------
@@ -987,18 +1082,8 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
             # one wave per pass: the children's errors are judged after the next solve, from
             # the radiosity they bring (their parents' errors and eps were judged without it)
             changed, capped = refine(state, src_state, eps, max_links, max_waves=1)
-            n_leaves = len(state.nodes.leaves)
-            if n_leaves != len(leaves):
-                new = state.nodes.leaves
-                new = new[state.direct_samples[new] == 0]
-                # a child keeps its parent's density of points (a quarter of them for a
-                # quarter of the area), at least the initial count
-                parent = state.nodes.parent[new]
-                inherited = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // 4, 0)
-                first = min(settings.samples_per_link, MAX_DIRECT_SAMPLES)
-                count = np.maximum(inherited, first)
-                for samples in np.unique(count):
-                    direct(state, new[count == samples], int(samples))
+            if len(state.nodes.leaves) != len(leaves):
+                direct_of_new_leaves(state)
             passes += 1
             bar.update(1)
             if not (changed or resampled):
@@ -1026,8 +1111,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
     from .solution import Solution
 
     scene, settings, nodes = state.scene, state.settings, state.nodes
-    leaves = solved.leaves
-    system = solved.system
+    leaves = gathered.leaves
+    system = gathered.system
     h_leaf = gathered.irradiance + state.direct[leaves]
     buried_emission = state.patch_emission[nodes.patch[leaves]] * state.buried[leaves][:, None]
     b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0) + buried_emission
