@@ -778,8 +778,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # evaluated again with four times the rays, up to a ray to each of the source's points
     # (a quadrature, not a sample)
     while True:
-        noisy = np.flatnonzero((g_var > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
-                                                         state.settings.tolerance)) & (pair_rays < GATHER_MAX_RAYS))
+        # (the leaves of one input triangle err independently: each by its share of it)
+        noisy = np.flatnonzero((g_var * output_share(state, pair_node) >
+                                gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)) &
+                               (pair_rays < GATHER_MAX_RAYS))
         if not len(noisy):
             break
         pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
@@ -881,7 +883,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[final_leaves] * np.sqrt(var)
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
-    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final, inner[links.recv])
+    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final,
+                    inner[links.recv])
 
 
 def source_state(state: State, solved: Solved) -> SourceState:

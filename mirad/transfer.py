@@ -5,8 +5,10 @@ A link r <- s is evaluated at the receiver's fixed quadrature points x_i (nodes.
 * planar sources (triangles, face clusters): the exact unoccluded point-to-polygon form
   factor G_i = F(dA_{x_i} -> polygon of s) * fill_s (Lambert's formula, clipped to x_i's
   tangent half-space; exact for triangles and rectangular clusters);
-* volume clusters: a Monte Carlo estimate over the rays' target points, each with the
-  bounded point-to-point kernel cos_x cos_y A_s / (pi r^2 + A_s / S).
+* volume clusters: a Monte Carlo estimate over the rays' target points, each the exact
+  form factor of the triangle the point is on over the probability of drawing that triangle
+  (A_triangle / A_s): unbiased, and bounded by A_s / A_triangle where a point-to-point
+  kernel is not.
 
 Visibility is only sampled: R shadow rays from each x_i to the link's own stratified points
 on the source (``source_point``, ``mi.Scene.ray_test``); v_i is the kernel-weighted fraction of them that arrive. A link's
@@ -173,7 +175,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     pattern = pattern_size(r_count)
     step = 2 * (r_count // 2) + 1 if r_count < pattern else 1
     t = (key + i * 7 + j * step) % pattern
-    y, ny = source_point(buf, s, t, pattern, key)
+    y, ny, tri = source_point(buf, s, t, pattern, key)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -182,12 +184,19 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     cos_y = -dr.dot(d, ny) / dr.maximum(dist, _TINY)
     valid = (cos_x > 0) & (cos_y > 0) & (dist > 0)
     kernel = dr.select(valid, cos_x * cos_y / dr.maximum(dist2, _TINY), 0.0)
-    g_volume = dr.select(valid & ~planar,
-                         cos_x * cos_y * area_s / (dr.pi * dist2 + area_s * (1.0 / SOURCE_POINTS)), 0.0)
+    # a volume cluster: the exact form factor of the triangle the point is on, over the
+    # probability of drawing it (its share of the cluster's area): unbiased, and bounded by
+    # the cluster's area over the triangle's where a point-to-point kernel is not (a bounded
+    # kernel A cos cos / (pi r^2 + A / S) took too little light from nearby triangles)
+    tri_corners = [dr.gather(mi.Vector3f, c, tri) for c in buf.poly]
+    tri_front = dr.dot(ny, x - tri_corners[0]) > 0.1 * offset
+    ff_tri = dr.select(~planar & tri_front, point_to_polygon_dr(x, nx, tri_corners), 0.0)
+    g_volume = ff_tri * area_s / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
     traced = valid & ((g_exact > 0) | ~planar)
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = dist * (1 - 1e-4)
-    v = dr.select(traced & ~mi_scene.ray_test(ray, traced), 1.0, 0.0)
+    # (a point behind the receiver's plane on a triangle that straddles it: no ray to aim, seen)
+    v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
     lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
              dr.select(traced, 1.0, 0.0)]
     dr.eval(*lanes)
@@ -217,8 +226,8 @@ def pattern_size(rays_per_point: int) -> int:
 
 
 def source_point(buf: NodeBuffers, s, t, pattern: int, key):
-    """Point t (of ``pattern``) on source nodes s and its normal (mi.Vector3f each) for
-    the link whose hash is ``key``.
+    """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each) and the
+    triangle node it is on (mi.UInt32), for the link whose hash is ``key``.
 
     Each link draws its own stratified set: a Hammersley set shifted per link (every
     receiver point of a link aims at the same ``pattern`` points, so a ray to each of
@@ -257,7 +266,7 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key):
     direction = radial / dr.maximum(rlen, _TINY)
     y = dr.select(curved, y + direction * (radius - rlen), y)
     n = dr.select(curved, dr.select(dr.dot(direction, n) < 0, -direction, direction), n)
-    return y, n
+    return y, n, node
 
 
 def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:

@@ -253,6 +253,32 @@ def test_a_shadow_across_a_large_black_triangle_is_resolved_by_the_gather():
     assert sol.stats["estimated_error"] >= 0.5 * measured
 
 
+def test_volume_cluster_links_carry_the_light_of_their_nearby_triangles():
+    """Chair legs standing on the furnished room's floor get much of their light through
+    links to volume clusters nearby. The clusters' Monte Carlo transfer once used a point
+    kernel bounded near the receiver (A cos cos / (pi r^2 + A / S)): it took too little of
+    the nearby triangles' light, and the legs read 7.2 % low over all 256 of their triangles
+    at tolerance 0.1, a one-sided bias that no seed averages out. Each sample is now the
+    exact form factor of its triangle over the probability of drawing it (unbiased).
+    Against a path-traced reference of those triangles (0.09 % standard error), the legs'
+    signed error must stay well inside the tolerance."""
+    from mirad.reference import triangle_reference
+
+    tol = 0.1
+    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
+    floor = scene.tri_shape == scene.shape_index("floor")
+    up = scene.tri_normal[floor].mean(0)
+    up /= np.linalg.norm(up)
+    chairs = np.isin(scene.tri_shape, [scene.shape_index(f"chair-{i}") for i in range(1, 9)])
+    legs = np.flatnonzero(chairs & (scene.tri_vertices.min(1) @ up < 0.01) & (np.abs(scene.tri_normal @ up) < 0.5))
+    assert len(legs) == 256
+    ref = triangle_reference(scene, samples_per_triangle=4096, seed=3, triangles=legs)
+    sol = mirad.solve(scene, tolerance=tol, **HIER)
+    a = scene.tri_area[legs][:, None]
+    signed = float((a * (sol.triangle_radiosity[legs] - ref.radiosity)).sum() / (a * ref.radiosity).sum())
+    assert abs(signed) <= tol / 4, signed
+
+
 @pytest.mark.parametrize("mirrored", ["receiver", "light", "both"])
 def test_mirrored_shapes_receive_and_send_as_unmirrored(mirrored):
     """A negative-determinant transform turns Mitsuba's geometric normal against the side it
@@ -321,7 +347,15 @@ def test_scaled_and_moved_scene_solves_the_same(tmp_path, scale, shift):
     """Ties in the median splits (exact in the input, broken differently by the float32
     rounding of moved vertices) once gave other trees and up to 10 % per triangle; the plane
     fits in metres rounded differently under power-of-two scaling. Same elements, radiosity
-    within 1e-6 (bitwise under a power of two)."""
+    within 1e-6 (bitwise under a power of two).
+
+    Under translation the vertices themselves round differently in float32 (by ~1e-6 m
+    here): a shadow ray that passes that close to an occluder's edge can be blocked in one
+    scene and not in the other. One such ray (of the 1.3 M) turns over here, on a link of
+    one ray per point: 1/7 of that link's light, 3.6e-4 of the triangle it lands on and
+    ~1e-6 of the others after interreflection. So: the same elements, most triangles within
+    a few 1e-6, none beyond what one turned-over ray can move (1e-3), where a change of
+    structure moved them by percents."""
     sys.path.insert(0, str(SCENES / "hard-cases"))
     import cases
     from meshgen import rotation
@@ -335,7 +369,10 @@ def test_scaled_and_moved_scene_solves_the_same(tmp_path, scale, shift):
     if scale == 1024.0:
         assert np.array_equal(moved.triangle_radiosity, base.triangle_radiosity)
     rel = np.abs(moved.triangle_radiosity - base.triangle_radiosity) / base.triangle_radiosity
-    assert rel.max() <= 1e-6
+    if any(shift):
+        assert np.median(rel) <= 1e-5 and rel.max() <= 1e-3, (np.median(rel), rel.max())
+    else:
+        assert rel.max() <= 1e-6
 
 
 def test_a_narrow_spot_on_a_large_floor_is_found_and_resolved():
