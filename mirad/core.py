@@ -574,27 +574,34 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
         # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
         var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
                                                  ff_unocc[vol], rays[vol])) ** 2
-    spatial = np.where(partial, b * b * shadow_variance(w, g.astype(np.float64), gv_point.astype(np.float64), rays), 0.0)
+    spatial = np.zeros(len(patch))
+    if partial.any():
+        k = np.flatnonzero(partial)
+        spatial[k] = b[k] ** 2 * shadow_variance(nodes, patch[k], w[k], g[k].astype(np.float64),
+                                                 gv_point[k].astype(np.float64), rays[k])
     return ff, var, spatial, seconds
 
 
-def shadow_variance(w: np.ndarray, g: np.ndarray, gv_point: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """(M,) squared form-factor error of a K-point quadrature of the visibility over the
-    receiver: a shadow edge across the receiver falls between its fixed points, and more
-    rays at those points do not move it.
+def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray, gv_point: np.ndarray,
+                    rays: np.ndarray) -> np.ndarray:
+    """(M,) squared form-factor error of receivers recv's K-point quadrature of the
+    visibility over them: a shadow edge across a receiver falls between its fixed points,
+    and more rays at those points do not move it.
 
     w (M, K) the points' weights; g (M, K) their unoccluded transfers, gv_point (M, K) with
-    each point's own visibility over ``rays`` (M,) rays. The points' visibilities v_k differ
-    by the shadow and by their rays' noise; less the noise's expected share
-    (v_k (1 - v_k) / (R - 1)), their weighted spread over K points, as for K samples,
-    times the unoccluded transfer squared. Zero with one ray per point (spread and noise are
-    one there)."""
+    each point's own visibility v_k over ``rays`` (M,) rays. The visibility's share of each
+    point's transfer, g_k (v_k - V), is fitted by a plane over the receiver
+    (``linear_fit``): a penumbra that varies linearly over it the rule integrates exactly,
+    while an edge between the points leaves a residual. Its variance, less the share the
+    rays' noise explains (g_k^2 v_k (1 - v_k) / (R - 1)), over K points as for K samples.
+    Zero with one ray per point (residual and noise are one there)."""
     ff_unocc = (w * g).sum(axis=1)
     v = np.where(g > 0, gv_point / np.where(g > 0, g, 1.0), 1.0)
     vis = (w * g * v).sum(axis=1) / np.where(ff_unocc > 0, ff_unocc, 1.0)
+    _, _, _, rms = linear_fit(nodes, recv, g * (v - vis[:, None]))
     r = rays.astype(np.float64)[:, None]
-    spread = (w * ((v - vis[:, None]) ** 2 - v * (1 - v) / np.maximum(r - 1, 1))).sum(axis=1)
-    return np.where(rays > 1, ff_unocc ** 2 * np.maximum(spread, 0.0) / RECEIVER_POINTS, 0.0)
+    noise = (w * g * g * v * (1 - v) / np.maximum(r - 1, 1)).sum(axis=1)
+    return np.where(rays > 1, np.maximum(rms * rms - noise, 0.0) / RECEIVER_POINTS, 0.0)
 
 
 def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
