@@ -41,6 +41,7 @@ from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET, channel_max
+from .periodic import box_for, far_field
 
 #: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
 #: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
@@ -91,6 +92,7 @@ class State:
     direct_bound: np.ndarray | None = None    # (N,) W/m^2 bound of point/spot light on a leaf (emitters.delta_light_bound)
     rays: int = 0
     waves: int = 0
+    periodic: object | None = None            # periodic.PeriodicBox of a periodic canopy, or None
 
     def __post_init__(self) -> None:
         self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
@@ -133,7 +135,7 @@ def build(scene: Scene, settings: Settings) -> State:
                   patch_rho=scene.patch_rho[:, :channels], patch_emission=scene.patch_emission[:, :channels],
                   total_area=total,
                   min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
-                  offset=RAY_OFFSET * scene.diagonal, links=Links())
+                  offset=RAY_OFFSET * scene.diagonal, links=Links(), periodic=box_for(scene, settings))
     _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
     state.timing["build"] += time.perf_counter() - t
     return state
@@ -149,7 +151,7 @@ def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: 
     if state.buffers is None or state.buffers.size != len(state.nodes):
         state.buffers = NodeBuffers.upload(state.nodes)
     return evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays_per_point, seed=seed,
-                    offset=state.offset)
+                    offset=state.offset, periodic=state.periodic)
 
 
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
@@ -317,7 +319,8 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     tri = scene.patch_tri[nodes.patch[ids]]
     curve = (scene.curve_center[tri], scene.curve_axis[tri], scene.curve_radius[tri])
     h, err, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
-                                     seed=state.settings.seed + samples, keys=ids, with_error=True)
+                                     seed=state.settings.seed + samples, keys=ids, with_error=True,
+                                     periodic=state.periodic)
     state.direct[ids] = h[:, : state.channels]
     fresh = ids[state.direct_samples[ids] == 0]
     if len(fresh):
@@ -1001,7 +1004,9 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
         bar.total = bar.n
         bar.refresh()
         bar.close()
+    solved, far_noise = far_field(state, solved, solve)       # periodic: images beyond the linked ones
     gathered = final_gather(state, solved)
+    gathered.noise_power = gathered.noise_power + far_noise
     est = output_estimate(state, est, gathered)
     if capped:
         warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
