@@ -182,3 +182,138 @@ def test_rays_through_an_empty_box_cross_it_as_often_as_the_closed_form_says(pos
     dist = np.linalg.norm(dd, axis=1)
     hit = periodic.ray_test(scene.mi_scene, box, o, vec(dd / dist[:, None]), mi.Float(dist.astype(np.float32)))
     assert hit.numpy().tolist() == [True, False]
+
+
+# ------------------------------------------------------------------------------------------
+# Canopies: the periodic reference, energy, mirad per leaf
+# ------------------------------------------------------------------------------------------
+
+def _make():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scenes" / "periodic-canopy" / "make.py"
+    spec = importlib.util.spec_from_file_location("periodic_canopy_make", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: The small pattern of these tests: a 2 x 2 m plot, 2 crowns of 60 leaves (240 leaf triangles).
+SMALL = {"half": 1.0, "plants": 2, "leaves_per_plant": 60, "seed": 5}
+BOX = "-1,-1,1,1"
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("periodic-canopy")
+    scene = load(str(_make().write_canopy(folder, **SMALL)))
+    box = periodic.box_for(scene, mirad.Settings(periodic=BOX, **HIER))
+    return scene, box
+
+
+def _weighted(ref, other, area):
+    """Area-weighted relative difference per channel, and its standard error."""
+    w = area[:, None]
+    diff = ((ref.value - other[0]) * w).sum(0) / (other[0] * w).sum(0)
+    se = np.sqrt(((ref.stderr ** 2 + other[1] ** 2) * w ** 2).sum(0)) / (other[0] * w).sum(0)
+    return diff, se
+
+
+def test_periodic_reference_matches_mitsubas_path_tracer_on_a_large_tiled_canopy(small, tmp_path):
+    """The pattern copied 21 x 21 times (the middle tile the pattern itself, 120 k triangles),
+    rendered by Mitsuba's own ``path`` integrator per triangle of the middle tile, against the
+    periodic path tracer on the pattern alone: every side's area-weighted radiosity agrees within
+    4 standard errors in every channel (a 9 x 9 field still reads the undersides' blue 1.2 % high:
+    low sky seen under the canopy beyond its edge), and the pattern without wrapping does not
+    (it is 5 % off in red and 15 % in blue on the undersides)."""
+    from mirad.periodic_reference import periodic_reference
+    from mirad.reference import triangle_reference
+
+    scene, box = small
+    tiled = load(str(_make().write_canopy(tmp_path, tiles=21, **SMALL)))
+    middle = np.flatnonzero(np.isin(tiled.tri_shape, [tiled.shape_index("ground"), tiled.shape_index("leaves")]))
+    assert np.allclose(tiled.tri_vertices[middle], scene.tri_vertices, atol=1e-6)
+    apart = []
+    for side in ("front", "back"):
+        brute = triangle_reference(tiled, samples_per_triangle=1024, seed=2, side=side, triangles=middle)
+        wrapped = periodic_reference(scene, box, samples_per_triangle=1024, seed=1, side=side)
+        alone = periodic_reference(scene, None, samples_per_triangle=1024, seed=3, side=side)
+        area = scene.tri_area * (scene.back_rho.max(axis=1) > 0 if side == "back" else 1.0)
+        diff, se = _weighted(wrapped, (brute.radiosity, brute.stderr), area)
+        assert np.all(np.abs(diff) <= 4 * se), (side, diff, se)
+        diff, se = _weighted(alone, (brute.radiosity, brute.stderr), area)
+        apart.append(np.abs(diff) / se)
+    assert max(a.max() for a in apart) > 10
+
+
+def test_energy_under_a_sky_absorbed_plus_escaped_is_what_the_sky_sends_down(small):
+    """An infinite canopy under a constant sky of radiance L: the sky sends pi L per m^2 of
+    plot down through the canopy's top (light from below the horizon meets the ground's black
+    underside). Every watt of it is absorbed by the leaves (both sides) and the ground, or
+    leaves upwards to the sky again: sum over sides of B A V, V the side's view of the sky
+    through the wrapped canopy (cosine-weighted wrapped rays). The balance must hold within
+    the solve's estimate plus the view factors' sampling error."""
+    scene0, box = small
+    scene = load({"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.25, 0.32, 0.45]}},
+                  "ground": {"type": "ply", "id": "ground", "filename": str(scene0.source).replace("scene.xml", "ground.ply"),
+                             "face_normals": True,
+                             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.25, 0.2, 0.15]}}},
+                  "leaves": {"type": "ply", "id": "leaves", "face_normals": True,
+                             "filename": str(scene0.source).replace("scene.xml", "leaves.ply"), "bsdf": leaf_bsdf()}})
+    sol = mirad.solve(scene, tolerance=0.03, periodic=BOX, **HIER)
+    from mirad import export
+
+    absorbed = export.absorbed_power(sol, sol.triangle_irradiance, sol.back_irradiance).sum(0)
+    # each side's view of the sky: 256 cosine-weighted wrapped rays per triangle side
+    rng = np.random.default_rng(0)
+    count = 256
+    escaped = np.zeros(3)
+    var = np.zeros(3)
+    verts = scene.tri_vertices
+    for sign, b in ((1.0, sol.triangle_radiosity), (-1.0, sol.back_radiosity)):
+        n = scene.tri_normal * sign
+        u, v = rng.random((2, len(verts), count))
+        su = np.sqrt(u)
+        p = (verts[:, 0, None] * (1 - su)[..., None] + verts[:, 1, None] * (su * (1 - v))[..., None]
+             + verts[:, 2, None] * (su * v)[..., None])
+        d = periodic._cosine_directions(n, count, rng)
+        o = (p + n[:, None] * 1e-4).reshape(-1, 3)
+        free = ~periodic.ray_test(scene.mi_scene, box, vec(o), vec(d.reshape(-1, 3))).numpy()
+        view = free.reshape(len(verts), count).mean(axis=1)
+        escaped += (b * (scene.tri_area * view)[:, None]).sum(0)
+        var += ((b * scene.tri_area[:, None]) ** 2 * (view * (1 - view) / count)[:, None]).sum(0)
+    sent = np.pi * np.array([0.25, 0.32, 0.45]) * 4.0
+    balance = (absorbed + escaped) / sent - 1
+    assert np.all(np.abs(balance) <= sol.stats["estimated_error"] + 3 * np.sqrt(var) / sent), balance
+    assert np.all(absorbed > 0.5 * sent)        # (not trivially escaped: the canopy and soil take most)
+
+
+def test_mirad_absorbed_power_per_leaf_matches_the_periodic_reference(small):
+    """Per leaf (2 triangles, both sides) absorbed power of the small periodic canopy under sun
+    and sky at tolerance 0.05, against the periodic path tracer (2,048 paths per triangle side):
+    the relative L1 over leaves within the tolerance in every channel (measured 1.1-1.4 %, the
+    reference's noise 0.4 %), and the total within 1 %; the same solve without wrapping misses
+    the blue by 9 %."""
+    from mirad import export
+    from mirad.periodic_reference import periodic_reference
+
+    scene, box = small
+    front = periodic_reference(scene, box, samples_per_triangle=2048, seed=1, quantity="irradiance")
+    back = periodic_reference(scene, box, samples_per_triangle=2048, seed=2, quantity="irradiance", side="back")
+    leaf = np.flatnonzero(scene.tri_shape == scene.shape_index("leaves"))
+    n = len(leaf) // 2            # diamond leaves: first triangles of every leaf, then the second ones
+    organ = np.concatenate([np.arange(n), np.arange(n)])
+    errors = {}
+    for name, box_text in (("periodic", BOX), ("alone", None)):
+        sol = mirad.solve(scene, tolerance=0.05, periodic=box_text, **HIER)
+        mine = export.absorbed_power(sol, sol.triangle_irradiance, sol.back_irradiance)[leaf]
+        ref = export.absorbed_power(sol, front.value, back.value)[leaf]
+        per_leaf = np.zeros((n, 3)), np.zeros((n, 3))
+        np.add.at(per_leaf[0], organ, mine)
+        np.add.at(per_leaf[1], organ, ref)
+        errors[name] = (np.abs(per_leaf[0] - per_leaf[1]).sum(0) / per_leaf[1].sum(0),
+                        (per_leaf[0] - per_leaf[1]).sum(0) / per_leaf[1].sum(0))
+    assert np.all(errors["periodic"][0] <= 0.05), errors
+    assert np.all(np.abs(errors["periodic"][1]) <= 0.01), errors
+    assert errors["alone"][0].max() > 0.05, errors
