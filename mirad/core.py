@@ -41,7 +41,7 @@ from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET, channel_max
-from .periodic import box_for, far_field
+from .periodic import box_for, far_field, periodic_stats
 
 #: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
 #: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
@@ -1072,6 +1072,7 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "detail_leaves": 0,
         # a leaf BSDF's diffuse transmission is carried to the other side (``transmission``)
         "leaf_transmission": "carried" if scene.diffuse_transmission else "none",
+        "periodic": periodic_stats(state),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]

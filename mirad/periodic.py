@@ -532,3 +532,14 @@ def far_field(state, solved, solve):
     state.far_field = {"rays": int(len(origins)), "hit_share": float(hit.mean()),
                        "irradiance_share": float((gather @ b_patch).sum() / max(float(base.max(axis=1).sum()), 1e-300))}
     return solved, stderr * area
+
+
+def periodic_stats(state) -> dict | None:
+    """``Solution.stats["periodic"]``: the box (user frame), the images a link sums and the far
+    field's figures (rays, share of them that met a far image, its irradiance as a share of the
+    leaves' direct light), or None for an ordinary solve."""
+    box = state.periodic
+    if box is None:
+        return None
+    return {"box": box.describe(state.scene.origin), "images": int(len(box.images())),
+            **getattr(state, "far_field", {})}

@@ -119,6 +119,13 @@ def test_cli_refuses_a_bad_box_without_a_traceback(tmp_path):
     assert out.returncode != 0 and "shape 'ground'" in out.stderr and "Traceback" not in out.stderr
 
 
+def test_the_scene_files_integrator_takes_the_box_and_refuses_a_bad_one():
+    integrator = mi.load_dict({"type": "radiosity", "core": "hierarchical", "periodic": "-1,-1,1,1"})
+    assert integrator.periodic == "-1,-1,1,1" and integrator.periodic_up == "+z"
+    with pytest.raises(Exception, match="radiosity integrator: periodic='-1,-1,1' has 3 numbers"):
+        mi.load_dict({"type": "radiosity", "core": "hierarchical", "periodic": "-1,-1,1"})
+
+
 # ------------------------------------------------------------------------------------------
 # Wrapped rays
 # ------------------------------------------------------------------------------------------
@@ -307,6 +314,8 @@ def test_mirad_absorbed_power_per_leaf_matches_the_periodic_reference(small):
     errors = {}
     for name, box_text in (("periodic", BOX), ("alone", None)):
         sol = mirad.solve(scene, tolerance=0.05, periodic=box_text, **HIER)
+        if box_text:
+            sol_periodic = sol
         mine = export.absorbed_power(sol, sol.triangle_irradiance, sol.back_irradiance)[leaf]
         ref = export.absorbed_power(sol, front.value, back.value)[leaf]
         per_leaf = np.zeros((n, 3)), np.zeros((n, 3))
@@ -317,3 +326,10 @@ def test_mirad_absorbed_power_per_leaf_matches_the_periodic_reference(small):
     assert np.all(errors["periodic"][0] <= 0.05), errors
     assert np.all(np.abs(errors["periodic"][1]) <= 0.01), errors
     assert errors["alone"][0].max() > 0.05, errors
+    stats = sol_periodic.stats["periodic"]
+    assert stats["box"] == "x in [-1, 1] m, y in [-1, 1] m" and stats["images"] == 9
+    assert 0 < stats["hit_share"] < 1 and stats["rays"] == periodic.FAR_RAYS * sol_periodic.stats["leaves"]
+    assert sol.stats["periodic"] is None
+    # probes do not wrap yet: refused rather than wrong
+    with pytest.raises(SettingsError, match="periodic box"):
+        sol_periodic.irradiance_at([[0, 0, 0.01]], [[0, 0, 1]])
