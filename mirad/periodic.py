@@ -397,8 +397,13 @@ def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, 
 # The far field: light from images beyond the linked ones (core.py)
 # ------------------------------------------------------------------------------------------
 
-#: Cosine-weighted rays per leaf that gather the far field.
+#: Cosine-weighted rays per leaf that first gather the far field; leaves whose far-field noise
+#: exceeds their share of FAR_SHARE get four times as many, up to FAR_MAX_RAYS.
 FAR_RAYS = 64
+FAR_MAX_RAYS = 4096
+#: Share of the tolerance the far field's sampling noise may take (summed over leaves, as the
+#: final gather's noise is).
+FAR_SHARE = 0.25
 #: Solves with the far field's irradiance lagged from the previous one (its gain is
 #: rho times the far field's small form factor, so two leave a residual of that squared).
 FAR_ITERATIONS = 2
@@ -406,12 +411,13 @@ FAR_ITERATIONS = 2
 
 def _cosine_directions(normals: np.ndarray, count: int, rng) -> np.ndarray:
     """(N, count, 3) cosine-weighted unit directions about unit normals (N, 3), stratified
-    over a sqrt(count) x sqrt(count) grid per point, jittered."""
+    over a sqrt(count) x sqrt(count) grid per point, jittered, the strata in a random order per
+    point (so that they are independent of the order of stratified positions they leave from)."""
     n = len(normals)
     g = int(math.ceil(math.sqrt(count)))
-    cell = np.arange(count)
-    u1 = ((cell % g)[None, :] + rng.random((n, count))) / g
-    u2 = ((cell // g % g)[None, :] + rng.random((n, count))) / g
+    cell = rng.permuted(np.broadcast_to(np.arange(count), (n, count)), axis=1)
+    u1 = ((cell % g) + rng.random((n, count))) / g
+    u2 = ((cell // g % g) + rng.random((n, count))) / g
     r, phi = np.sqrt(u1), 2 * np.pi * u2
     local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - u1, 0.0))], axis=-1)
     helper = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
@@ -485,59 +491,106 @@ def hit_patches(scene, box: PeriodicBox, origins: np.ndarray, directions: np.nda
     return out
 
 
+def _far_rays(state, leaves: np.ndarray, count: int, salt: int) -> np.ndarray:
+    """(len(leaves), count) patch hit on a far image by each of ``count`` wrapped cosine rays
+    from stratified points of each leaf (``hit_patches``; -1: none)."""
+    from .nodes import triangle_samples
+
+    nodes = state.nodes
+    seed = state.settings.seed + 0xFA5 + salt
+    pts, nrm = triangle_samples(nodes, leaves, count, seed)
+    dirs = _cosine_directions(nodes.normal[leaves], count, np.random.default_rng(seed))
+    patch = hit_patches(state.scene, state.periodic, (pts + nrm * state.offset).reshape(-1, 3), dirs.reshape(-1, 3))
+    state.rays += patch.size
+    return patch.reshape(len(leaves), count)
+
+
 def far_field(state, solved, solve):
     """Periodic canopies: the light that reaches each leaf from images of the scene beyond the
-    (2 IMAGE_RING + 1)^2 that its links sum, gathered by FAR_RAYS wrapped cosine rays per leaf
-    (``hit_patches``), added to the leaves' direct light and solved again (FAR_ITERATIONS
-    times, lagged: H_far = W B_patch with B from the previous solve).
+    (2 IMAGE_RING + 1)^2 that its links sum, gathered by wrapped cosine rays (``hit_patches``),
+    added to the leaves' direct light and solved again (FAR_ITERATIONS times, lagged:
+    H_far = W B_patch with B from the previous solve).
+
+    Each leaf starts with FAR_RAYS rays; while the summed noise (EXPECTED_ABS A_l se_l, the
+    brightest channel's standard error se_l) exceeds FAR_SHARE of the tolerance's power budget,
+    the leaves above their area's share of it are traced again with four times the rays (up to
+    FAR_MAX_RAYS).
 
     state, solved : ``core.State`` and ``core.Solved``; solve : ``core.solve``.
-    Returns (solved, noise (L,) W): the last solve and the far field's sampling error as power
-    (standard error of the brightest channel's mean times the leaf's area). Without a periodic
-    box: (solved, 0.0) unchanged."""
+    Returns (solved, noise (L,) W): the last solve and the far field's noise as power. Without
+    a periodic box: (solved, 0.0) unchanged."""
     box = state.periodic
     if box is None:
         return solved, 0.0
     import scipy.sparse as sp
-    from .nodes import triangle_samples
+    from .core import reference_mean
+    from .refine import EXPECTED_ABS
 
     scene, nodes = state.scene, state.nodes
     leaves = solved.leaves
     n_leaf = len(leaves)
-    count = FAR_RAYS
-    pts, nrm = triangle_samples(nodes, leaves, count, state.settings.seed + 0xFA5)
-    rng = np.random.default_rng(state.settings.seed + 0xFA5)
-    dirs = _cosine_directions(nodes.normal[leaves], count, rng)
-    origins = (pts + nrm * state.offset).reshape(-1, 3)
-    patch = hit_patches(scene, box, origins, dirs.reshape(-1, 3))
-    state.rays += len(origins)
-    rows = np.repeat(np.arange(n_leaf), count)
-    hit = patch >= 0
     n_patch = len(scene.patch_tri)
-    gather = sp.csr_matrix((np.full(int(hit.sum()), 1.0 / count), (rows[hit], patch[hit])), shape=(n_leaf, n_patch))
     # area-weighted mean radiosity of each patch over its leaves (P, L)
     leaf_patch = nodes.patch[leaves]
     area = nodes.area[leaves]
     total = np.bincount(leaf_patch, weights=area, minlength=n_patch)
     mean = sp.csr_matrix((area / np.maximum(total[leaf_patch], 1e-300), (leaf_patch, np.arange(n_leaf))),
                          shape=(n_patch, n_leaf))
+    budget = FAR_SHARE * state.settings.tolerance * state.total_area * reference_mean(state, solved)
+    allowed = budget * area / max(float(area.sum()), 1e-300)
+
+    def noise_of(hits_by_count, b_patch):
+        out = np.zeros(n_leaf)
+        for count, (rows, patch) in hits_by_count.items():
+            per_ray = np.where(patch >= 0, b_patch[np.maximum(patch, 0)], 0.0)
+            out[rows] = EXPECTED_ABS * area[rows] * per_ray.std(axis=1, ddof=1) / np.sqrt(count)
+        return out
+
+    b_max = (mean @ solved.b_leaf).max(axis=1)
+    count = FAR_RAYS
+    rows = np.arange(n_leaf)
+    hits = {count: (rows, _far_rays(state, leaves, count, 0))}
+    noise = noise_of(hits, b_max)
+    while noise.sum() > budget and count < FAR_MAX_RAYS:
+        again = np.flatnonzero(noise > allowed)
+        if not len(again):
+            break
+        count = min(4 * count, FAR_MAX_RAYS)
+        for c, (r, p) in list(hits.items()):        # the leaves traced again leave their old group
+            keep = ~np.isin(r, again)
+            hits[c] = (r[keep], p[keep])
+        hits[count] = (again, _far_rays(state, leaves[again], count, count))
+        noise = noise_of(hits, b_max)
+    # (L, P): the share of each leaf's rays that met each far patch
+    r_all, p_all, w_all = [], [], []
+    for c, (r, p) in hits.items():
+        hit = p >= 0
+        r_all.append(np.repeat(r, c)[hit.ravel()])
+        p_all.append(p[hit])
+        w_all.append(np.full(int(hit.sum()), 1.0 / c))
+    gather = sp.csr_matrix((np.concatenate(w_all), (np.concatenate(r_all), np.concatenate(p_all))),
+                           shape=(n_leaf, n_patch))
     base = state.direct[leaves].copy()
     for _ in range(FAR_ITERATIONS):
-        b_patch = mean @ solved.b_leaf
-        state.direct[leaves] = base + gather @ b_patch
+        state.direct[leaves] = base + gather @ (mean @ solved.b_leaf)
         solved = solve(state, solved)
-    b_patch = (mean @ solved.b_leaf).max(axis=1)
-    per_ray = np.where(hit, b_patch[np.maximum(patch, 0)], 0.0).reshape(n_leaf, count)
-    stderr = per_ray.std(axis=1, ddof=1) / math.sqrt(count)
-    state.far_field = {"rays": int(len(origins)), "hit_share": float(hit.mean()),
-                       "irradiance_share": float((gather @ b_patch).sum() / max(float(base.max(axis=1).sum()), 1e-300))}
-    return solved, stderr * area
+    b_max = (mean @ solved.b_leaf).max(axis=1)
+    noise = noise_of(hits, b_max)
+    far = (gather @ b_max)
+    state.far_field = {"rays": int(sum(c * len(r) for c, (r, _) in hits.items())),
+                       "most_rays_per_leaf": int(max(c for c, (r, _) in hits.items() if len(r))),
+                       "hit_share": float(gather.sum() / n_leaf),
+                       "irradiance": float((far * area).sum() / max(float(area.sum()), 1e-300)),
+                       "estimated_noise": float(noise.sum() / max(state.total_area * reference_mean(state, solved),
+                                                                  1e-300))}
+    return solved, noise
 
 
 def periodic_stats(state) -> dict | None:
     """``Solution.stats["periodic"]``: the box (user frame), the images a link sums and the far
-    field's figures (rays, share of them that met a far image, its irradiance as a share of the
-    leaves' direct light), or None for an ordinary solve."""
+    field's figures (rays traced, the most per leaf, the share of them that met a far image, the
+    area-weighted mean far-field irradiance of the brightest channel in W/m^2, and its noise
+    relative to the estimate's scale), or None for an ordinary solve."""
     box = state.periodic
     if box is None:
         return None

@@ -192,6 +192,30 @@ def test_rays_through_an_empty_box_cross_it_as_often_as_the_closed_form_says(pos
 
 
 # ------------------------------------------------------------------------------------------
+# Closed forms
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("rho_ceiling, expected", [(0.0, 1.0), (0.5, 4.0 / 3.0)])
+def test_two_infinite_parallel_planes_exchange_all_their_light(rho_ceiling, expected):
+    """A 2 x 2 m floor (rho 0.5) under a ceiling of the same size 1 m above it that emits E = 1
+    W/m^2 downwards, wrapped: two infinite parallel planes, which see only each other (form
+    factor 1). The floor's irradiance is then E = 1 with a black ceiling, and with rho = 0.5 on
+    both H = B_c = E + rho_c rho_f H, i.e. 4/3. The 3 x 3 linked images give 0.907 of it; the rest
+    (the far field, 9.3 %) comes by wrapped rays. Every floor triangle within the tolerance 0.01."""
+    scene = {"type": "scene",
+             "floor": {"type": "rectangle", "id": "floor", "bsdf": {"type": "diffuse", "reflectance": 0.5}},
+             "ceiling": {"type": "rectangle", "id": "ceiling", "to_world": T().translate([0, 0, 1]).rotate([1, 0, 0], 180),
+                         "bsdf": {"type": "diffuse", "reflectance": rho_ceiling},
+                         "emitter": {"type": "area", "radiance": 1.0 / np.pi}}}
+    sol = mirad.solve(scene, tolerance=0.01, periodic="-1,-1,1,1", **HIER)
+    floor = np.asarray(sol.triangle_shape) == sol.shape_ids.index("floor")
+    h = sol.triangle_irradiance[floor, 0]
+    assert np.all(np.abs(h / expected - 1) <= 0.01), h
+    assert sol.stats["estimated_error"] <= 0.01
+    assert 0.085 < sol.stats["periodic"]["hit_share"] < 0.1       # the far field's share, 0.093
+
+
+# ------------------------------------------------------------------------------------------
 # Canopies: the periodic reference, energy, mirad per leaf
 # ------------------------------------------------------------------------------------------
 
