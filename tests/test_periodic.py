@@ -163,6 +163,21 @@ def test_a_ray_hits_the_post_on_its_third_wrap(post_scene):
     assert not bool(periodic.ray_test(scene.mi_scene, box, vec([[-0.9, 0.3, 0.5]]), vec([d]), 5.0)[0])
 
 
+def test_a_y_up_box_wraps_along_x_and_z():
+    """With periodic_up="+y" the box is x and z: a ray along +z from (0.5, 0.5, 0.5) leaves the
+    box at z = 1, comes back at z = -1 and hits the post (a 0.2 m cube at (0.5, 0.5, 0)) on its
+    -z face at z = -0.1, one period on; a ray up along y leaves the scene's extent unhit."""
+    scene = load({"type": "scene", "sky": {"type": "constant"},
+                  "ground": {"type": "rectangle", "id": "ground", "to_world": T().rotate([1, 0, 0], -90)},
+                  "post": {"type": "cube", "id": "post", "to_world": T().translate([0.5, 0.5, 0]).scale(0.1)}})
+    box = periodic.box_for(scene, mirad.Settings(periodic="-1,-1,1,1", periodic_up="+y", **HIER))
+    assert box.axes == (0, 2, 1)
+    si, di, dj = periodic.ray_intersect(scene.mi_scene, box, vec([[0.5, 0.5, 0.5]]), vec([[0.0, 0.0, 1.0]]))
+    assert bool(si.is_valid()[0]) and int(di[0]) == 0 and int(dj[0]) == -1
+    assert float(si.p.z[0]) == pytest.approx(-0.1, abs=1e-5)
+    assert not bool(periodic.ray_test(scene.mi_scene, box, vec([[0.0, 0.2, 0.0]]), vec([[0.0, 1.0, 0.0]]))[0])
+
+
 def test_rays_through_an_empty_box_cross_it_as_often_as_the_closed_form_says(post_scene):
     """Above the post (z in (0.6, 0.6001] is still inside the vertical extent) nothing can be
     hit: a ray climbing at slope s leaves the extent after (zmax - z) / s of horizontal travel,
