@@ -41,7 +41,8 @@ from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET, channel_max
-from .periodic import box_for, far_field, periodic_stats
+from .far_field import far_field, periodic_stats
+from .periodic import box_for
 
 #: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
 #: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
@@ -1004,7 +1005,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
         bar.total = bar.n
         bar.refresh()
         bar.close()
-    solved, far_noise = far_field(state, solved, solve)       # periodic: images beyond the linked ones
+    solved, far_noise = far_field(state, solved, solve, reference_mean)   # periodic: images beyond the linked ones
     gathered = final_gather(state, solved)
     gathered.noise_power = gathered.noise_power + far_noise
     est = output_estimate(state, est, gathered)

@@ -34,7 +34,7 @@ import numpy as np
 import mirad
 import drjit as dr
 import mitsuba as mi
-from mirad import export, periodic
+from mirad import export, far_field, periodic
 from mirad.periodic_reference import periodic_reference
 from mirad.reference import triangle_reference
 from mirad.report import machine
@@ -168,12 +168,12 @@ def main() -> None:
 
     for tol in [float(t) for t in args.tolerances.split(",") if t.strip()]:
         run(f"periodic, tolerance {tol:g}", tol, periodic=BOX)
-    saved = periodic.FAR_ITERATIONS
-    periodic.FAR_ITERATIONS = 0
+    saved = far_field.FAR_ITERATIONS
+    far_field.FAR_ITERATIONS = 0
     try:
         run("periodic without the far field, tolerance 0.02", 0.02, periodic=BOX)
     finally:
-        periodic.FAR_ITERATIONS = saved
+        far_field.FAR_ITERATIONS = saved
     run("not periodic (the plot alone), tolerance 0.02", 0.02)
 
     # --- 4. the periodic path tracer as a per-leaf estimator -------------------------------------
