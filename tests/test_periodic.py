@@ -206,6 +206,17 @@ def test_rays_through_an_empty_box_cross_it_as_often_as_the_closed_form_says(pos
     assert hit.numpy().tolist() == [True, False]
 
 
+def test_cli_solves_a_periodic_canopy_and_reports_its_box(small, tmp_path):
+    import json
+
+    scene, _ = small
+    out = run_cli("solve", str(scene.source), "--core", "hierarchical", "--periodic=-1,-1,1,1", "--tolerance", "0.2",
+                  "--quiet", "-o", str(tmp_path / "canopy.npz"), "--stats", str(tmp_path / "stats.json"))
+    assert out.returncode == 0, out.stderr
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["periodic"]["box"] == "x in [-1, 1] m, y in [-1, 1] m" and stats["periodic"]["images"] == 9
+
+
 # ------------------------------------------------------------------------------------------
 # Closed forms
 # ------------------------------------------------------------------------------------------
