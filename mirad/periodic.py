@@ -175,13 +175,16 @@ def check_scene(scene, box: PeriodicBox) -> None:
     """Refuse a scene the box cannot repeat: a shape (area emitters included) that sticks out of
     the box laterally by more than ``SLACK`` of the period, or a point or spot light (its images
     are not summed). Sun and sky emitters are infinitely far and fine."""
-    verts = scene.vertices
-    tri_v = verts[scene.faces]                          # (T, 3, 3)
-    for s, sid in enumerate(scene.shape_ids):
-        pts = tri_v[scene.tri_shape == s].reshape(-1, 3)
-        if not len(pts):
+    tri_v = scene.vertices[scene.faces]                 # (T, 3, 3)
+    n_shapes = len(scene.shape_ids)
+    shape_lo = np.full((n_shapes, 3), np.inf)
+    shape_hi = np.full((n_shapes, 3), -np.inf)
+    np.minimum.at(shape_lo, scene.tri_shape, tri_v.min(axis=1))
+    np.maximum.at(shape_hi, scene.tri_shape, tri_v.max(axis=1))
+    for s, sid in enumerate(scene.shape_ids):           # (one check per shape, not per triangle)
+        lo, hi = shape_lo[s], shape_hi[s]
+        if not np.all(np.isfinite(lo)):
             continue
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
         for k in range(2):
             a = box.axes[k]
             slack = SLACK * box.size[k]
