@@ -41,6 +41,8 @@ from .scene import Scene
 from .settings import Settings
 from .transfer import NodeBuffers, buried_fraction, evaluate
 from .arrays import RAY_OFFSET, channel_max
+from .far_field import far_field, periodic_stats
+from .periodic import box_for
 
 #: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
 #: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
@@ -91,6 +93,8 @@ class State:
     direct_bound: np.ndarray | None = None    # (N,) W/m^2 bound of point/spot light on a leaf (emitters.delta_light_bound)
     rays: int = 0
     waves: int = 0
+    periodic: object | None = None            # periodic.PeriodicBox of a periodic canopy, or None
+    far: np.ndarray | None = None             # (N, C) W/m^2: its far field's irradiance (far_field.far_field)
 
     def __post_init__(self) -> None:
         self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
@@ -133,7 +137,7 @@ def build(scene: Scene, settings: Settings) -> State:
                   patch_rho=scene.patch_rho[:, :channels], patch_emission=scene.patch_emission[:, :channels],
                   total_area=total,
                   min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
-                  offset=RAY_OFFSET * scene.diagonal, links=Links())
+                  offset=RAY_OFFSET * scene.diagonal, links=Links(), periodic=box_for(scene, settings))
     _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
     state.timing["build"] += time.perf_counter() - t
     return state
@@ -149,7 +153,7 @@ def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: 
     if state.buffers is None or state.buffers.size != len(state.nodes):
         state.buffers = NodeBuffers.upload(state.nodes)
     return evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays_per_point, seed=seed,
-                    offset=state.offset)
+                    offset=state.offset, periodic=state.periodic)
 
 
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
@@ -317,7 +321,8 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     tri = scene.patch_tri[nodes.patch[ids]]
     curve = (scene.curve_center[tri], scene.curve_axis[tri], scene.curve_radius[tri])
     h, err, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
-                                     seed=state.settings.seed + samples, keys=ids, with_error=True)
+                                     seed=state.settings.seed + samples, keys=ids, with_error=True,
+                                     periodic=state.periodic)
     state.direct[ids] = h[:, : state.channels]
     fresh = ids[state.direct_samples[ids] == 0]
     if len(fresh):
@@ -339,6 +344,10 @@ def direct_of_new_leaves(state: State) -> None:
     count = np.maximum(from_parent, min(state.settings.samples_per_link, MAX_DIRECT_SAMPLES))
     for samples in np.unique(count):
         direct(state, new[count == samples], int(samples))
+    if state.far is not None:
+        # (a periodic canopy's far field, added to the direct light: a child takes its parent's)
+        state.far = inherited(state, state.far, np.arange(len(state.nodes)))
+        state.direct[new] += state.far[new]
 
 
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
@@ -1105,7 +1114,15 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
         bar.total = bar.n
         bar.refresh()
         bar.close()
+    solved, far_noise = far_field(state, solved, solve, reference_mean)   # periodic: images beyond the linked ones
     gathered = final_gather(state, solved)
+    if np.ndim(far_noise):
+        # (per leaf of the solve: a leaf the gather split shares its noise by area)
+        nodes = state.nodes
+        per_area = np.zeros((len(solved.b_node), 1))
+        per_area[solved.leaves, 0] = far_noise / nodes.area[solved.leaves]
+        far_noise = inherited(state, per_area, gathered.leaves)[:, 0] * nodes.area[gathered.leaves]
+    gathered.noise_power = gathered.noise_power + far_noise
     est = output_estimate(state, est, gathered)
     if capped:
         warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
@@ -1172,6 +1189,7 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "detail_leaves": 0,
         # a leaf BSDF's diffuse transmission is carried to the other side (``transmission``)
         "leaf_transmission": "carried" if scene.diffuse_transmission else "none",
+        "periodic": periodic_stats(state),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]

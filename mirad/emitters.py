@@ -108,7 +108,7 @@ def sky_sample(emitter, si, nn, k, n: int, key, up):
 
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
-                      seed: int, keys: np.ndarray, with_error: bool = False):
+                      seed: int, keys: np.ndarray, with_error: bool = False, periodic=None):
     """Mean direct irradiance (n, C), W/m^2, over triangles verts (n, 3, 3): C = 3 (RGB), or the
     bands of a band scene (``scene.light_band_scale`` (E, C): each emitter's RGB mean times its
     factor in each band).
@@ -117,6 +117,7 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     sample standard deviation of the per-point estimates over sqrt(samples) (conservative for
     the stratified points and sky directions), and under a sky at least the sky's part of H over
     ``samples`` (a feature smaller than one stratum may be missed by every sample).
+    ``periodic``: a ``periodic.PeriodicBox`` whose sides the shadow rays wrap around, or None.
     """
     n = len(verts)
     bands = getattr(scene, "light_band_scale", None)
@@ -128,14 +129,23 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     for start in range(0, n, per_launch):
         stop = min(n, start + per_launch)
         h, e, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
-                                 [c[start:stop] for c in curve], samples, seed, keys[start:stop])
+                                 [c[start:stop] for c in curve], samples, seed, keys[start:stop], periodic)
         out[start:stop] = h
         err[start:stop] = e
         rays += r
     return (out, err, rays) if with_error else (out, rays)
 
 
-def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
+def _blocked(mi_scene, ray, active, periodic):
+    """mi.Bool: shadow ray blocked; wrapped around the periodic box's sides when there is one."""
+    if periodic is None:
+        return mi_scene.ray_test(ray, active)
+    from .periodic import ray_test
+
+    return ray_test(mi_scene, periodic, ray.o, ray.d, ray.maxt, active)
+
+
+def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, periodic=None):
     m = len(verts)
     lane = dr.arange(mi.UInt32, m * n)
     idx = lane // n
@@ -178,7 +188,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
             d, weight = sky_sample(emitter, si, nn, k, n, key ^ (0x7FEB352D * (e_i + 1)), sky_up(emitter))
             active = dr.any(weight > 0)
             ray = mi.Ray3f(o, d)
-            blocked = scene.mi_scene.ray_test(ray, active)
+            blocked = _blocked(scene.mi_scene, ray, active, periodic)
             seen = dr.select(active & ~blocked, weight, 0.0)
             lane_sum = add(lane_sum, e_i, seen)
             sky_sum = add(sky_sum, e_i, seen)
@@ -194,7 +204,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys):
         direction = dr.select(is_inf, ds.d, to_light / dr.select(dist > 0, dist, 1.0))
         ray = mi.Ray3f(o, direction)
         ray.maxt = dr.select(is_inf, dr.largest(mi.Float), dist * (1 - 1e-4))
-        blocked = scene.mi_scene.ray_test(ray, active)
+        blocked = _blocked(scene.mi_scene, ray, active, periodic)
         w = dr.select(active & ~blocked, cos, 0.0)
         lane_sum = add(lane_sum, e_i, spec * w)
         traced += count_true(active)

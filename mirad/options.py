@@ -38,7 +38,7 @@ class Option:
 
 
 _CHOICES = {"solver": SOLVERS, "oracle": ORACLES, "shaft_culling": SWITCHES, "clustering": SWITCHES,
-            "core": CORES}
+            "core": CORES, "periodic_up": ("+z", "-z", "+y", "-y", "+x", "-x")}
 _KINDS = {"float": float, "int": int, "str": str, "bool": bool}
 
 

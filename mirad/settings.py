@@ -116,6 +116,15 @@ class Settings:
         triangles, exact unoccluded transfers, rays for visibility only (core.py);
         "legacy": links on receiver leaves with Monte Carlo transfers (solver.py). Shadow
         textures and the ``bf``/``bound`` oracles run on the legacy core.
+    periodic : str or None, default None
+        A periodic ("infinite") canopy: the lateral pattern box "amin,bmin,amax,bmax" (metres,
+        the scene file's frame, along the two horizontal axes of ``periodic_up``: x and y for
+        +z) whose sides rays wrap around, so the plot stands for an infinite field
+        (mirad/periodic.py, docs/periodic.md); the API also takes four numbers. Every shape must
+        lie inside the box; hierarchical core only. None: not periodic.
+    periodic_up : str, default "+z"
+        The scene's up axis for ``periodic`` (+z, -z, +y, -y, +x or -x); the box spans the
+        two other axes.
     """
 
     tolerance: float = 0.03
@@ -140,6 +149,8 @@ class Settings:
     workers: int = 0
     scheduler: str | None = None
     core: str = "legacy"
+    periodic: str | None = None
+    periodic_up: str = "+z"
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -182,6 +193,15 @@ class Settings:
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise SettingsError(f"scheduler={self.scheduler!r} must be a Dask scheduler address such as "
                                 "'tcp://10.0.0.5:8786'")
+        if self.periodic is not None:
+            from .periodic import parse_box
+
+            if parse_box(self.periodic, self.periodic_up) is not None and self.core != "hierarchical":
+                raise SettingsError(f"periodic={self.periodic!r} runs on the hierarchical core only; add "
+                                    "core='hierarchical' (CLI: --core hierarchical)")
+        elif not isinstance(self.periodic_up, str) or self.periodic_up.strip().lower() not in (
+                "+z", "-z", "+y", "-y", "+x", "-x", "x", "y", "z"):
+            raise SettingsError(f"periodic_up={self.periodic_up!r} is not an axis; give one of +z, -z, +y, -y, +x, -x")
         if int(self.seed) != self.seed or self.seed < 0:
             raise SettingsError(f"seed={self.seed!r} must be a non-negative integer")
 

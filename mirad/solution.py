@@ -442,6 +442,11 @@ class Solution:
         from .visibility import Geometry, gather_at_points
 
         scene = self.require_scene()
+        if (self.stats or {}).get("periodic"):
+            raise SettingsError("irradiance_at (probes) does not wrap its rays around the periodic box of this "
+                                f"solution ({self.stats['periodic'].get('box')}) yet, so it would miss the light of "
+                                "the neighbouring plots; read the per-triangle or per-organ irradiance of the "
+                                "solution instead (export --organs), or solve without periodic to probe")
         tolerance = self._probe_tolerance(tolerance)
         if (isinstance(max_samples, bool) or not isinstance(max_samples, (int, np.integer))
                 or not 1 <= max_samples <= PROBE_MAX_SAMPLES):

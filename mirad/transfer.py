@@ -109,9 +109,11 @@ def point_to_polygon_dr(x, n, corners):
 
 
 def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
-             seed: int, offset: float) -> PointTransfers:
+             seed: int, offset: float, periodic=None) -> PointTransfers:
     """Transfers of links recv <- src (M,) at the receivers' K points, R = rays_per_point
-    shadow rays each; ``offset`` lifts ray ends off surfaces (metres)."""
+    shadow rays each; ``offset`` lifts ray ends off surfaces (metres). ``periodic``: a
+    ``periodic.PeriodicBox`` (the link then sums the source's nearest lattice images, with
+    wrapped shadow rays; ``periodic.image_visibility``), or None."""
     m = len(recv)
     k = RECEIVER_POINTS
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
@@ -120,7 +122,7 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     for a in range(0, m, per_launch):
         b = min(m, a + per_launch)
         g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed,
-                                                        offset)
+                                                        offset, periodic)
         rays += ra
     return PointTransfers(g, gv, gp, g2, rays)
 
@@ -133,7 +135,7 @@ def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: 
     return dr.select(planar & front, point_to_polygon_dr(x, nx, corners) * dr.gather(mi.Float, buf.fill, s), 0.0)
 
 
-def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float):
+def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None):
     m = len(recv)
     k = RECEIVER_POINTS
     per_link = k * r_count
@@ -153,8 +155,12 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     kind = dr.gather(mi.UInt32, buf.kind, s)
     planar = kind != VOLUME
     area_s = dr.gather(mi.Float, buf.area, s)
+    form_factor = _point_form_factor
+    if periodic is not None:     # the sum over the source's lattice images (periodic.py)
+        from .periodic import image_form_factor
+        form_factor = image_form_factor(periodic, _point_form_factor)
     if r_count == 1:
-        g_exact = _point_form_factor(buf, x, nx, corners, ns, planar, s, offset)
+        g_exact = form_factor(buf, x, nx, corners, ns, planar, s, offset)
     else:
         # the form factor depends on the point, not the ray: once per point (M K lanes),
         # then shared by the point's R rays
@@ -165,8 +171,8 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
         p_n = dr.gather(mi.Vector3f, buf.recv_nrm, p_r * k + p_lane % k)
         p_corners = [dr.gather(mi.Vector3f, c, p_s) for c in buf.poly]
         p_planar = dr.gather(mi.UInt32, buf.kind, p_s) != VOLUME
-        g_point = _point_form_factor(buf, p_x, p_n, p_corners, dr.gather(mi.Vector3f, buf.normal, p_s), p_planar,
-                                     p_s, offset)
+        g_point = form_factor(buf, p_x, p_n, p_corners, dr.gather(mi.Vector3f, buf.normal, p_s), p_planar,
+                              p_s, offset)
         dr.eval(g_point)
         g_exact = dr.gather(mi.Float, g_point, lane // r_count)
 
@@ -176,6 +182,12 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     step = 2 * (r_count // 2) + 1 if r_count < pattern else 1
     t = (key + i * 7 + j * step) % pattern
     y, ny, tri = source_point(buf, s, t, pattern, key)
+    if periodic is not None:     # one of the source's images per ray, wrapped visibility
+        from .periodic import image_visibility
+        kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact, area_s,
+                                                       offset, hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)),
+                                                       SOURCE_POINTS)
+        return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -195,8 +207,12 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     traced = valid & ((g_exact > 0) | ~planar)
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = dist * (1 - 1e-4)
-    # (a point behind the receiver's plane on a triangle that straddles it: no ray to aim, seen)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
+    return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
+
+
+def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v):
+    """The wave's per-ray lanes summed per receiver point, back in numpy (see ``_kernel``)."""
     lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
              dr.select(traced, 1.0, 0.0)]
     dr.eval(*lanes)
