@@ -344,14 +344,15 @@ def image_form_factor(box: PeriodicBox, one):
     return summed
 
 
-def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, area_s, offset: float, key,
-                     source_points: int):
+def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, tri_corners, per_area,
+                     offset: float, key, volume_sample):
     """One shadow ray per lane from receiver points x (normals nx) to one image of the source
     point y (normal ny), for ``transfer._kernel`` on a periodic scene.
 
     Every image y + o_I (``PeriodicBox.images``) gets its point-to-point kernel k_I =
-    cos_x cos_y / r^2 (planar sources) or the bounded volume kernel g_I = cos_x cos_y A_s /
-    (pi r^2 + A_s / S) (volume clusters); one image is picked with probability proportional to
+    cos_x cos_y / r^2 (planar sources) or, for volume clusters, the sample g_I of
+    ``volume_sample`` (``transfer.volume_sample``: the exact form factor of the image of the sampled triangle,
+    ``tri_corners``, times the cluster's area over the triangle's, ``per_area``); one image is picked with probability proportional to
     it (``key``: a per-lane hash) and its visibility v traced by a wrapped segment
     (``ray_test``). The lane's weights are the sums over images, K = sum k_I and G = sum g_I:
     sum(K v) / sum(K) over a link's rays is then the kernel-weighted visibility of all its
@@ -368,8 +369,7 @@ def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, 
         cos_y = -dr.dot(d, ny) / dr.maximum(dist, 1e-30)
         valid = (cos_x > 0) & (cos_y > 0) & (dist > 0)
         ks.append(dr.select(valid, cos_x * cos_y / dr.maximum(dist2, 1e-30), 0.0))
-        gs.append(dr.select(valid & ~planar, cos_x * cos_y * area_s / (dr.pi * dist2 + area_s * (1.0 / source_points)),
-                            0.0))
+        gs.append(volume_sample(x, nx, ny, [c + off for c in tri_corners], per_area, planar, offset))
         targets.append(yi)
     kernel = ks[0]
     g_volume = gs[0]

@@ -182,11 +182,17 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     step = 2 * (r_count // 2) + 1 if r_count < pattern else 1
     t = (key + i * 7 + j * step) % pattern
     y, ny, tri = source_point(buf, s, t, pattern, key)
+    # a volume cluster: the exact form factor of the triangle the point is on, over the
+    # probability of drawing it (its share of the cluster's area): unbiased, and bounded by
+    # the cluster's area over the triangle's where a point-to-point kernel is not (a bounded
+    # kernel A cos cos / (pi r^2 + A / S) took too little light from nearby triangles)
+    tri_corners = [dr.gather(mi.Vector3f, c, tri) for c in buf.poly]
+    per_area = area_s / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
     if periodic is not None:     # one of the source's images per ray, wrapped visibility
         from .periodic import image_visibility
-        kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact, area_s,
-                                                       offset, hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)),
-                                                       SOURCE_POINTS)
+        kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
+                                                       tri_corners, per_area, offset,
+                                                       hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
         return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
     o = x + nx * offset
     d = (y + ny * offset) - o
@@ -196,19 +202,21 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     cos_y = -dr.dot(d, ny) / dr.maximum(dist, _TINY)
     valid = (cos_x > 0) & (cos_y > 0) & (dist > 0)
     kernel = dr.select(valid, cos_x * cos_y / dr.maximum(dist2, _TINY), 0.0)
-    # a volume cluster: the exact form factor of the triangle the point is on, over the
-    # probability of drawing it (its share of the cluster's area): unbiased, and bounded by
-    # the cluster's area over the triangle's where a point-to-point kernel is not (a bounded
-    # kernel A cos cos / (pi r^2 + A / S) took too little light from nearby triangles)
-    tri_corners = [dr.gather(mi.Vector3f, c, tri) for c in buf.poly]
-    tri_front = dr.dot(ny, x - tri_corners[0]) > 0.1 * offset
-    ff_tri = dr.select(~planar & tri_front, point_to_polygon_dr(x, nx, tri_corners), 0.0)
-    g_volume = ff_tri * area_s / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
+    g_volume = volume_sample(x, nx, ny, tri_corners, per_area, planar, offset)
     traced = valid & ((g_exact > 0) | ~planar)
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = dist * (1 - 1e-4)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
     return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
+
+
+def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
+    """mi.Float: a volume-cluster source's transfer sample at points x (normals nx): the exact
+    form factor of the sampled triangle (corners ``tri_corners``, normal ny) times the
+    cluster's area over the triangle's (``per_area``); 0 for planar sources and for
+    triangles facing away (or in x's plane)."""
+    front = dr.dot(ny, x - tri_corners[0]) > 0.1 * offset
+    return dr.select(~planar & front, point_to_polygon_dr(x, nx, tri_corners) * per_area, 0.0)
 
 
 def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v):
