@@ -529,6 +529,7 @@ class Gathered:
     leaves: np.ndarray | None = None     # (L',) the leaves after the gather's own splits
     system: LeafSystem | None = None     # the gathered system over them
     regathered: np.ndarray | None = None  # (M,) bool: links whose transfers it replaced
+    source_power: np.ndarray | None = None  # (L',) W: its transfers' source terms (as refine's)
 
 
 #: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
@@ -875,7 +876,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     ff = np.concatenate([g_ff] + [p[2] for p in stay] + [p[2] for p in smooth_parts])
     var_node = np.bincount(recv, weights=np.concatenate([g_var + g_shadow] + [p[3] for p in stay] +
                                                         [p[3] for p in smooth_parts]), minlength=n)
-    var = ancestor_matrix(nodes, final_leaves) @ var_node
+    # and the error of taking each source's mean, as refinement's source term at the level
+    # the transfer now has (its children's deviation times the kernel's change across it)
+    centre = np.linalg.norm(nodes.center[recv] - nodes.center[srcs], axis=1)
+    change = np.minimum(1.0, 2.0 * nodes.radius[srcs] / np.maximum(centre, 1e-300))
+    src_err_node = np.bincount(recv, weights=ff * b_src[srcs] * varies[srcs] * change, minlength=n)
+    to_leaves = ancestor_matrix(nodes, final_leaves)
+    var = to_leaves @ var_node
     # the system again, with every link on an inner node replaced by its leaves' own
     # transfers: each leaf then gathers from the sources' means what reaches its own points,
     # and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered mean
@@ -896,11 +903,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     state.timing["solve"] += solve_time
     h_leaf = final.gather(np.maximum(b, 0.0))
     rho = channel_max(state.patch_rho[nodes.patch[final_leaves]])
-    noise = EXPECTED_ABS * (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[final_leaves] * np.sqrt(var)
+    weight = (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[final_leaves]
+    noise = EXPECTED_ABS * weight * np.sqrt(var)
+    source_power = weight * (to_leaves @ src_err_node)
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
     return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final,
-                    inner[links.recv])
+                    inner[links.recv], source_power)
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -1030,14 +1039,17 @@ def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate
     The gather evaluates every link on an inner node again on the leaves below its receiver
     and the system is solved again with those transfers: the errors of the inner nodes'
     means (those links' receiver terms) are gone from the output, and the gather's own
-    visibility noise and fit residuals take their place. Source terms, links on leaves and
-    the direct light keep theirs."""
+    visibility noise and fit residuals take their place; their source terms too, where the
+    gather's transfers, each from the source it descended to, bring their own
+    (``Gathered.source_power``). Links on leaves and the direct light keep theirs."""
     receiver = np.where(gathered.regathered, 0.0, est.receiver)
+    source = np.where(gathered.regathered, 0.0, est.source)
     # (the gather may have split leaves: their direct light is their own)
     direct = direct_power_errors(state, gathered.leaves) if state.scene.light_emitters else \
         np.zeros(len(gathered.leaves))
-    total = float(receiver.sum() + est.source.sum() + direct.sum() + gathered.noise_power.sum())
-    return replace(est, receiver=receiver, direct=direct,
+    total = float(receiver.sum() + source.sum() + direct.sum() + gathered.noise_power.sum() +
+                  gathered.source_power.sum())
+    return replace(est, receiver=receiver, source=source, direct=direct,
                    relative=total / max(state.total_area * est.reference_mean, 1e-300))
 
 
@@ -1145,7 +1157,7 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
     b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0) + buried_emission
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
     err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
-        (est.direct + gathered.noise_power) / nodes.area[leaves]
+        (est.direct + gathered.noise_power + gathered.source_power) / nodes.area[leaves]
     if ERRORS_OF == "irradiance":      # (an irradiance error; the map is of the radiosity)
         err_leaf = err_leaf * system.rho.max(axis=1)
     area_leaf = nodes.area[leaves]
