@@ -1193,6 +1193,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "volume_clusters": int(np.count_nonzero(kinds == VOLUME)),
         "min_element_area": state.min_area,
         "capped": bool(capped),
+        # the estimate at or under the tolerance (a solve that stops above it also warns)
+        "within_tolerance": bool(est.relative <= settings.tolerance),
         "features": scene.features,
         "variant": scene.variant,
         "memory_bytes": {"elements": int(nodes.nbytes), "links": int(state.links.nbytes)},

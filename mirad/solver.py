@@ -540,6 +540,8 @@ def solve_problem(scene: Scene, settings: Settings):
         "clusters": 0 if prob.clusters is None else int(prob.clusters.count),
         "min_element_area": prob.min_area,
         "capped": bool(capped),
+        # the estimate at or under the tolerance (a solve that stops above it also warns)
+        "within_tolerance": bool(estimated <= settings.tolerance),
         "features": scene.features,
         "variant": scene.variant,
         "memory_bytes": {"elements": prob.elements.nbytes, "links": prob.links.nbytes},

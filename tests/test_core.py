@@ -251,6 +251,11 @@ def test_a_shadow_across_a_large_black_triangle_is_resolved_by_the_gather():
     assert np.all(np.abs(h / exact - 1) <= tol), h / exact - 1
     measured = float(np.abs(h - exact) @ scene.tri_area[floor] / (exact @ scene.tri_area[floor]))
     assert sol.stats["estimated_error"] >= 0.5 * measured
+    assert sol.stats["within_tolerance"]
+    # asked for far more than one pass can give: it says so, in a warning and in the stats
+    with pytest.warns(UserWarning, match="above the tolerance"):
+        short = mirad.solve(scene, tolerance=1e-4, max_refine_passes=1, **HIER)
+    assert not short.stats["within_tolerance"] and short.stats["estimated_error"] > 1e-4
 
 
 def test_volume_cluster_links_carry_the_light_of_their_nearby_triangles():
