@@ -703,14 +703,11 @@ def output_share(state: State, ids: np.ndarray) -> np.ndarray:
     return nodes.area[ids] / np.maximum(state.scene.tri_area[state.scene.patch_tri[nodes.patch[ids]]], 1e-300)
 
 
-#: Send near sources' radiosity gradients (``linear_sources``): off until it is invariant under
-#: scaling. Measured on: 90-degree corners at tolerance 0.03 +8.4 % -> +4.5 % on the worst
-#: triangle (4 of 54 beyond 3 %, was 8), the 36-triangle box at 0.1 0.91 % -> 0.63 % L1 (signed
-#: -0.80 -> -0.48 %), the fine box and the room 0.02-0.04 % better, +0.1-0.7 s; but its
-#: correction moves by ~1 % under scaling the scene by 1e3 (2.4e-6 of a triangle's radiosity,
-#: tests/test_core.py::test_scaled_and_moved_scene_solves_the_same asks 1e-6): some selection in
-#: it is not yet scale-free.
-LINEAR_SOURCES = False
+#: Send near sources' radiosity gradients (``linear_sources``). Measured: 90-degree corners at
+#: tolerance 0.03 +8.4 % -> +4.4 % on the worst triangle (4 of 54 beyond 3 %, was 8), the
+#: 36-triangle box at 0.1 0.91 % -> 0.67 % L1 (signed -0.80 -> -0.53 %), the fine box and the room
+#: 0.02-0.05 % better, for 0.1-0.3 s.
+LINEAR_SOURCES = True
 #: Fixed-point steps of the sources' linear radiosity (``linear_sources``).
 LINEAR_SOURCE_ITERATIONS = 2
 
@@ -732,8 +729,9 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     n = len(nodes)
     is_leaf = np.zeros(n, bool)
     is_leaf[leaves] = True
+    gap = distance_to_source(nodes, pair_node, pair_src) / np.maximum(nodes.radius[pair_src], 1e-300)
     near = np.flatnonzero(is_leaf[pair_node] & (ff > 0) & np.isin(nodes.kind[pair_src], (TRIANGLE, FACE)) &
-                          (distance_to_source(nodes, pair_node, pair_src) <= 2.0 * nodes.radius[pair_src]))
+                          (gap < 2.0))
     if not len(near):
         return None
     r, s = pair_node[near], pair_src[near]
@@ -811,7 +809,10 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     centre = (parts[s_pos].mean(axis=2) - origin[s_pos][:, None]) / size[s_pos][:, None, None]   # (M', 4, 3)
     w = nodes.recv_w[r].astype(np.float64)
     vis = np.minimum(ff[near] / np.maximum((w * f.sum(axis=2)).sum(axis=1), 1e-300), 1.0)
-    moment = np.einsum("mk,mkj,mjc->mc", w, f, centre) * vis[:, None]
+    # (tapered to nothing at the selection's edge, two radii away, where it is small: no pair
+    # jumps in or out of it)
+    taper = np.clip(2.0 - gap[near], 0.0, 1.0)
+    moment = np.einsum("mk,mkj,mjc->mc", w, f, centre) * (vis * taper)[:, None]
     mu = np.stack([np.einsum("mc,mc->m", moment, t1[s_pos]), np.einsum("mc,mc->m", moment, t2[s_pos])], 1)
     pull = system.pull
 
