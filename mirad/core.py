@@ -703,11 +703,12 @@ def output_share(state: State, ids: np.ndarray) -> np.ndarray:
     return nodes.area[ids] / np.maximum(state.scene.tri_area[state.scene.patch_tri[nodes.patch[ids]]], 1e-300)
 
 
-#: Send near sources' radiosity gradients (``linear_sources``). Measured: 90-degree corners at
-#: tolerance 0.03 +8.4 % -> +4.4 % on the worst triangle (4 of 54 beyond 3 %, was 8), the
-#: 36-triangle box at 0.1 0.91 % -> 0.67 % L1 (signed -0.80 -> -0.53 %), the fine box and the room
-#: 0.02-0.05 % better, for 0.1-0.3 s.
-LINEAR_SOURCES = True
+#: Send near sources' radiosity gradients (``linear_sources``). Off by default: it makes the
+#: per-triangle field better where a source's radiosity varies across it (90-degree corners at
+#: tolerance 0.03: worst triangle +8.4 % -> +4.4 %; the 36-triangle box at 0.1: 0.91 % -> 0.67 %
+#: L1) but barely moves the area-weighted error of finer meshes (fine box 1.13 -> 1.09 %, room
+#: 0.96 -> 0.94 % at 0.05) for 0.4-0.6 s more, so time to 1 % grows (fine box 2.6 -> 3.3 s).
+LINEAR_SOURCES = False
 #: Fixed-point steps of the sources' linear radiosity (``linear_sources``).
 LINEAR_SOURCE_ITERATIONS = 2
 

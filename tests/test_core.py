@@ -304,8 +304,8 @@ def test_the_estimate_is_within_twice_the_measured_error_on_the_cornell_box(tol)
 
 
 def test_linear_sources_bring_the_corners_closer(tmp_path, monkeypatch):
-    """core.LINEAR_SOURCES: a near source's radiosity gradient sent with the pair's first
-    moment. On the corner room at tolerance
+    """core.LINEAR_SOURCES (off by default, for speed): a near source's radiosity gradient
+    sent with the pair's first moment. On the corner room at tolerance
     0.03 the triangles next to the 90-degree corners were up to 8-9 % high with it off (the
     walls' mean radiosity over cells that darken towards the corner); on, the worst of them
     against a path-traced reference (65,536 paths per triangle) must come down by a third."""
