@@ -36,17 +36,17 @@ from .linear import LeafSystem, solve_system
 from .nodes import (FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes,
                     split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
-                     face_mean_errors, link_values, power_errors, refinement_threshold, volume_transfer_std)
+                     face_mean_errors, kernel_change, link_values, power_errors, refinement_threshold,
+                     volume_transfer_std)
 from .scene import Scene
 from .settings import Settings
-from .arrays import to_vector3
 from .transfer import NodeBuffers, buried_fraction, evaluate, point_to_polygon_dr
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-from .arrays import RAY_OFFSET, channel_max
+from .arrays import RAY_OFFSET, channel_max, to_vector3
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
+
+import drjit as dr  # noqa: E402  (after transfer, which sets the runtime up)
+import mitsuba as mi  # noqa: E402
 
 #: Most points per leaf for the direct light of point/spot/sun/sky emitters: a safety cap
 #: (memory and time), far above what tolerances down to 1e-3 ask for; the estimate keeps what
@@ -954,9 +954,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
-        centre = np.linalg.norm(nodes.center[pair_node] - nodes.center[pair_src], axis=1)
-        change = np.minimum(1.0, 2.0 * nodes.radius[pair_src] / np.maximum(centre, 1e-300))
-        error = g_ff * b_src[pair_src] * varies[pair_src] * change
+        error = g_ff * b_src[pair_src] * varies[pair_src] * kernel_change(nodes, pair_node, pair_src)
         uneven = error ** 2 > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
         split = (overhang | uneven) & (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & \
             (nodes.kind[pair_src] != VOLUME)
@@ -1017,9 +1015,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                                                         [p[3] for p in smooth_parts]), minlength=n)
     # and the error of taking each source's mean, as refinement's source term at the level
     # the transfer now has (its children's deviation times the kernel's change across it)
-    centre = np.linalg.norm(nodes.center[recv] - nodes.center[srcs], axis=1)
-    change = np.minimum(1.0, 2.0 * nodes.radius[srcs] / np.maximum(centre, 1e-300))
-    src_err_node = np.bincount(recv, weights=ff * b_src[srcs] * varies[srcs] * change, minlength=n)
+    src_err_node = np.bincount(recv, weights=ff * b_src[srcs] * varies[srcs] * kernel_change(nodes, recv, srcs),
+                               minlength=n)
     to_leaves = ancestor_matrix(nodes, final_leaves)
     var = to_leaves @ var_node
     # the system again, with every link on an inner node replaced by its leaves' own

@@ -190,6 +190,14 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     return np.maximum(std, unoccluded / n)
 
 
+def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) the kernel's relative change across each source seen from its receiver, min(1,
+    2 R_s / d) over the distance d between their centres: what turns a source's radiosity
+    deviation into a transfer error (the source term)."""
+    dist = np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1)
+    return np.minimum(1.0, 2.0 * nodes.radius[src] / np.maximum(dist, 1e-300))
+
+
 def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) m: from each receiver's centre to the nearest point of its source's bounding
     sphere (0 inside it)."""
@@ -272,9 +280,7 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
     # a face cluster's own triangles get their light from the final gather (core.py): an
     # error in the cluster's mean reaches the output only once reflected again elsewhere
     receiver = scale * state.b_max[s] * EXPECTED_ABS * links.vis_std + face_mean_errors(nodes, links, state)
-    dist = np.linalg.norm(nodes.center[r] - nodes.center[s], axis=1)
-    kernel_change = np.minimum(1.0, 2.0 * nodes.radius[s] / np.maximum(dist, 1e-300))
-    source = scale * links.ff * state.dev[s] * kernel_change
+    source = scale * links.ff * state.dev[s] * kernel_change(nodes, r, s)
     vol = np.flatnonzero(nodes.kind[s] == VOLUME)
     # a far cluster's transfer is a Monte Carlo estimate, its error the samples' (the
     # receiver term above) and its radiosity's variation (the source term); near it (within

@@ -211,15 +211,11 @@ def leaf_error(power: np.ndarray, reference: np.ndarray) -> float:
 
 def time_at(target: float, seconds, errs) -> float:
     """Seconds at which the error first reaches ``target``, log-log interpolated between sweep
-    points (nan when it never does)."""
-    s, e = np.log(np.asarray(seconds, np.float64)), np.log(np.asarray(errs, np.float64))
-    for k in range(len(e)):
-        if e[k] <= math.log(target):
-            if k == 0:
-                return float(np.exp(s[0]))
-            f = (math.log(target) - e[k - 1]) / (e[k] - e[k - 1])
-            return float(np.exp(s[k - 1] + f * (s[k] - s[k - 1])))
-    return float("nan")
+    points (``mirad.measure.time_at_error``; nan when it never does)."""
+    from mirad.measure import time_at_error
+
+    t, _ = time_at_error(seconds, errs, target)
+    return float("nan") if t is None else t
 
 
 class Leaves:

@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 import mirad  # noqa: E402
+from mirad.measure import time_at_error  # noqa: E402
 from mirad.reference import cached_reference, triangle_reference  # noqa: E402
 from mirad.validate import machine  # noqa: E402
 
@@ -52,16 +53,11 @@ def errors(scene, value: np.ndarray, reference: np.ndarray) -> tuple[float, floa
     return diff / float((a * reference).sum()), diff / max(float((a * reflected).sum()), 1e-300)
 
 
-def time_at(target: float, seconds: list, errs: list) -> float:
-    """Seconds at which error reaches target, log-log interpolated (nan when never reached)."""
-    s, e = np.log(np.asarray(seconds)), np.log(np.asarray(errs))
-    for k in range(len(e)):
-        if e[k] <= np.log(target):
-            if k == 0:
-                return float(np.exp(s[0]))
-            f = (np.log(target) - e[k - 1]) / (e[k] - e[k - 1])
-            return float(np.exp(s[k - 1] + f * (s[k] - s[k - 1])))
-    return float("nan")
+def time_at(target: float, seconds, errs) -> float:
+    """Seconds at which the error first reaches ``target``, log-log interpolated between sweep
+    points (``mirad.measure.time_at_error``; nan when it never does)."""
+    t, _ = time_at_error(seconds, errs, target)
+    return float("nan") if t is None else t
 
 
 def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
