@@ -36,11 +36,11 @@ from .linear import LeafSystem, solve_system
 from .nodes import (FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes,
                     split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
-                     face_mean_errors, kernel_change, link_values, power_errors, refinement_threshold,
-                     volume_transfer_std)
+                     face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
+                     refinement_threshold, unresolved, volume_transfer_std)
 from .scene import Scene
 from .settings import Settings
-from .transfer import NodeBuffers, buried_fraction, evaluate, point_to_polygon_dr
+from .transfer import NodeBuffers, buried_fraction, evaluate, point_to_polygon_dr, reverse_form_factor
 from .arrays import RAY_OFFSET, channel_max, to_vector3
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
@@ -147,6 +147,13 @@ def build(scene: Scene, settings: Settings) -> State:
     return state
 
 
+def _buffers(state: State) -> NodeBuffers:
+    """The nodes in Dr.Jit, uploaded again when their count changed."""
+    if state.buffers is None or state.buffers.size != len(state.nodes):
+        state.buffers = NodeBuffers.upload(state.nodes)
+    return state.buffers
+
+
 def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int):
     """``transfer.evaluate`` of links recv <- src (M,) on the state's nodes: in this process,
     or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers; the
@@ -154,9 +161,7 @@ def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: 
     if state.evaluator is not None:
         return state.evaluator.evaluate_transfers(state.nodes, recv, src, rays_per_point=rays_per_point, seed=seed,
                                                   offset=state.offset)
-    if state.buffers is None or state.buffers.size != len(state.nodes):
-        state.buffers = NodeBuffers.upload(state.nodes)
-    return evaluate(state.scene.mi_scene, state.buffers, recv, src, rays_per_point=rays_per_point, seed=seed,
+    return evaluate(state.scene.mi_scene, _buffers(state), recv, src, rays_per_point=rays_per_point, seed=seed,
                     offset=state.offset, periodic=state.periodic)
 
 
@@ -172,6 +177,13 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
         part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
         for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread"):
             getattr(out, name)[idx] = getattr(part, name)
+    # links whose source is too near for the receiver's points: the same transfer summed
+    # over the source's points bounds what those points missed
+    near = np.flatnonzero(unresolved(state.nodes, out.recv, out.src))
+    if len(near):
+        reverse = reverse_form_factor(_buffers(state), out.recv[near], out.src[near], state.offset)
+        out.err_ff[near] = np.maximum(out.err_ff[near], reciprocal_error(state.nodes, out.recv[near], out.src[near],
+                                                                         out.ff[near], out.ff_unocc[near], reverse))
     state.waves += 1
     state.timing["transfer"] += time.perf_counter() - t
     return out
@@ -681,7 +693,9 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     # a rectangle that only bounds its cluster, nearer than its size: its overhang is not light
     near_overhang = (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src) <= 2.0 * nodes.radius[src])
     allowed = GATHER_SHARE * tolerance * np.sqrt(np.maximum(h_recv * mean * b_src, 0.0))
-    smooth = seen & ~near_overhang & (nodes.kind[src] != VOLUME) & (rms * b_src <= allowed)
+    # (a source too near for the receiver's points may light a spot between them)
+    smooth = seen & ~near_overhang & (nodes.kind[src] != VOLUME) & (rms * b_src <= allowed) & \
+        ~unresolved(nodes, recv, src)
     return smooth, x0, a, grad, rms
 
 

@@ -11,6 +11,12 @@ form-factor units, both from the receiver points of its wave (transfer.py):
   points, about C (h/d)^3 for a receiver of radius h at distance d, scaled by (h/d)^3 to
   the degree-5 rule's C (h/d)^6 (capped at 1). A face-cluster source's rectangle stands
   in for its triangles scaled by its fill ratio: F (1 - fill) more.
+  Where the source is smaller than the receiver and nearer to it than the receiver's radius
+  (``unresolved``), the light peaks on a spot the K points may all miss, and then their
+  spread misses it too: there ``err_ff`` is at least the difference from the same
+  unoccluded transfer summed over the source's own points (``reciprocal_error``, exact
+  point-to-polygon form factors to the receiver, times A_s / A_r), and the final gather
+  does not interpolate such a link over the receiver.
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
   over the link's n rays (zero when all rays agree).
 
@@ -170,6 +176,35 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16))
+
+
+def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) bool: links whose source is smaller than their receiver and nearer to the
+    receiver's surface than the receiver's radius: the light it brings peaks on a spot about
+    as wide as that distance, which the receiver's K points need not resolve (all of them
+    may miss it, and then so does their spread).
+
+    The distance runs from the source's bounding sphere to the receiver's disc (its bounding
+    sphere's section in its plane): the height over the plane and the reach beyond the rim."""
+    rel = nodes.center[src] - nodes.center[recv]
+    height = np.abs(np.einsum("mc,mc->m", rel, nodes.normal[recv]))
+    across = np.sqrt(np.maximum(np.einsum("mc,mc->m", rel, rel) - height ** 2, 0.0))
+    beyond = np.maximum(across - nodes.radius[recv], 0.0)
+    gap = np.maximum(np.hypot(height, beyond) - nodes.radius[src], 0.0)
+    return (nodes.kind[recv] != VOLUME) & (nodes.radius[src] < nodes.radius[recv]) & (gap < nodes.radius[recv])
+
+
+def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.ndarray, ff_unocc: np.ndarray,
+                     reverse: np.ndarray) -> np.ndarray:
+    """(M,) form-factor units: how far the receiver-side means of links recv <- src (their
+    receivers' K points: ``ff_unocc``, and ``ff`` with visibility) are from the same
+    unoccluded transfer integrated over the source's side, A_s / A_r sum_k w_k F(y_k -> r)
+    (``reverse`` (M, K): transfer.reverse_form_factor), times the links' visibility: where
+    the receiver's points miss a near source's spot, the two disagree."""
+    other = nodes.area[src] / np.maximum(nodes.area[recv], 1e-300) * (nodes.recv_w[src] * reverse).sum(axis=1)
+    ff_unocc = np.asarray(ff_unocc, np.float64)
+    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    return np.abs(ff_unocc - other) * vis
 
 
 def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, unoccluded: np.ndarray,

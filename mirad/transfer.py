@@ -127,6 +127,26 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     return PointTransfers(g, gv, gp, g2, rays)
 
 
+def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, offset: float) -> np.ndarray:
+    """(M, K) exact unoccluded form factors from the K points of sources src (M,) (their
+    receiver points, ``nodes.recv_pts``) to the polygons of receivers recv (M,) (scaled by
+    the receiver's fill): the transfer integrated over the source's side, where a source
+    much smaller than its receiver is resolved by its own points. Planar sources only."""
+    m, k = len(recv), RECEIVER_POINTS
+    if m == 0:
+        return np.zeros((0, k))
+    lane = dr.arange(mi.UInt32, m * k)
+    r = dr.gather(mi.UInt32, to_uint(recv), lane // k)
+    s = dr.gather(mi.UInt32, to_uint(src), lane // k)
+    y = dr.gather(mi.Vector3f, buf.recv_pts, s * k + lane % k)
+    ny = dr.gather(mi.Vector3f, buf.recv_nrm, s * k + lane % k)
+    corners = [dr.gather(mi.Vector3f, c, r) for c in buf.poly]
+    front = dr.dot(dr.gather(mi.Vector3f, buf.normal, r), y - corners[0]) > 0.1 * offset
+    value = dr.select(front, point_to_polygon_dr(y, ny, corners) * dr.gather(mi.Float, buf.fill, r), 0.0)
+    dr.eval(value)
+    return np.asarray(value.numpy(), np.float64).reshape(m, k)
+
+
 def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: float):
     """Exact unoccluded form factor from points x (normals nx) to planar sources s (their
     polygon ``corners`` and normal ``ns``), scaled by the source's fill; 0 for volume
