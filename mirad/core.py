@@ -33,7 +33,8 @@ import scipy.sparse as sp
 from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
-from .nodes import (FACE, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface, build_nodes,
+from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
+                    build_nodes,
                     split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
@@ -717,40 +718,60 @@ def output_share(state: State, ids: np.ndarray) -> np.ndarray:
     return nodes.area[ids] / np.maximum(state.scene.tri_area[state.scene.patch_tri[nodes.patch[ids]]], 1e-300)
 
 
-#: Send near sources' radiosity gradients (``linear_sources``). Off by default: it makes the
-#: per-triangle field better where a source's radiosity varies across it (90-degree corners at
-#: tolerance 0.03: worst triangle +8.4 % -> +4.4 %; the 36-triangle box at 0.1: 0.91 % -> 0.67 %
-#: L1) but barely moves the area-weighted error of finer meshes (fine box 1.13 -> 1.09 %, room
-#: 0.96 -> 0.94 % at 0.05) for 0.4-0.6 s more, so time to 1 % grows (fine box 2.6 -> 3.3 s).
-LINEAR_SOURCES = False
+#: Send sources' radiosity gradients (``linear_sources``) with every planar transfer of the
+#: gathered system (pairs, links the gather interpolates over face clusters, links on leaves):
+#: a source's mean misses how its radiosity varies across it where the kernel changes across
+#: it too. At tolerance 0.1 the 36-triangle box 0.68 -> 0.61 % L1, the fine box 1.82 -> 1.41 %;
+#: the worst 90-degree corner triangle at 0.03 +8.4 -> +3.2 %; a thousand small lamps' floor
+#: 8.7 -> 3.1 % (tolerance 0.2); ~10 % more time.
+LINEAR_SOURCES = True
 #: Fixed-point steps of the sources' linear radiosity (``linear_sources``).
 LINEAR_SOURCE_ITERATIONS = 2
 
 
 def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leaves: sp.csr_matrix,
-                   pair_node: np.ndarray, pair_src: np.ndarray, ff: np.ndarray, points: np.ndarray):
-    """What a source's radiosity gradient sends to a leaf near it, which its mean does not: a
+                   pair_node: np.ndarray, pair_src: np.ndarray, ff: np.ndarray, points: np.ndarray,
+                   item_node: np.ndarray, item_src: np.ndarray, item_ff: np.ndarray):
+    """What sources' radiosity gradients send to the leaves, which their means do not: a
     function b (L, C) -> extra irradiance (L, C) of the leaves, or None.
 
-    A pair r <- s (a leaf r, a planar source s within its bounding sphere's diameter) takes s's
-    mean radiosity; the kernel weighs s's nearer part more, and where the radiosity varies
-    across s (darker towards a corner) that mean is off. The gradient of s is fitted, in its
-    plane, to the radiosity at the points of every leaf below it: the leaf's mean plus its
-    reflectance times the spread its own pairs' transfers (``points`` (M, K)) bring to its
-    points. The pair's first moment over s, sum_k w_k sum_j F(x_k -> s_j) (c_j - c_s) over
-    four parts s_j of s (midpoint sub-triangles; a face cluster's rectangle quadrants times
-    its fill), times the pair's visibility, turns the gradient into irradiance."""
+    A transfer r <- s of the gathered system (``item_node``, ``item_src``, ``item_ff`` (M,):
+    its receiver node, a leaf or a face cluster whose leaves all take it, its source and its
+    mean form factor) takes s's mean radiosity; the kernel weighs s's nearer part more, and
+    where the radiosity varies across s (darker towards a corner, bright along a wall's top)
+    that mean is off. For a flat source s (a triangle or face cluster whose leaves keep its
+    plane) the gradient is fitted, in its plane, to the radiosity at the points of every leaf
+    below it: the leaf's mean plus its reflectance times the spread its own pairs' transfers
+    (``pair_node``, ``pair_src``, ``points`` (M', K)) bring to its points. The transfer's first
+    moment over s turns the gradient into irradiance: within two source radii
+    sum_k w_k sum_j F(x_k -> s_j) (c_j - c_s) over four parts s_j of s (midpoint
+    sub-triangles; a face cluster's rectangle quadrants times its fill) times the visibility
+    (``_near_moments``), farther the expansion's leading term F (grad_y log K)^T C_s with C_s
+    the covariance of s's area (``_far_moments``), the two blended from one radius to two.
+
+    A gradient has zero mean over its source, so its corrections only move the source's light
+    between its receivers: what is left of their sum (receivers that take s's light through a
+    volume cluster's mean, and the expansions' error) is taken back from all of s's transfers
+    in proportion to their power. Without that, a thousand lamps' room absorbed 0.7 % more
+    than they emit; with it, a gradient does not change how much of a source's light leaves
+    an open scene (the 36-triangle box at tolerance 0.1 reads 0.61 % L1 with it, 0.24 %
+    without).
+    """
     nodes = state.nodes
     n = len(nodes)
-    is_leaf = np.zeros(n, bool)
-    is_leaf[leaves] = True
-    gap = distance_to_source(nodes, pair_node, pair_src) / np.maximum(nodes.radius[pair_src], 1e-300)
-    near = np.flatnonzero(is_leaf[pair_node] & (ff > 0) & np.isin(nodes.kind[pair_src], (TRIANGLE, FACE)) &
-                          (gap < 2.0))
-    if not len(near):
+    planar = (item_ff > 0) & np.isin(nodes.kind[item_src], (TRIANGLE, FACE))
+    gap = distance_to_source(nodes, item_node, item_src) / np.maximum(nodes.radius[item_src], 1e-300)
+    # (tapered from one source radius to two: no transfer jumps between the two forms)
+    taper = np.clip(2.0 - gap, 0.0, 1.0)
+    near = np.flatnonzero(planar & (taper > 0))
+    far = np.flatnonzero(planar & (taper < 1))
+    if not len(near) + len(far):
         return None
-    r, s = pair_node[near], pair_src[near]
-    sources, s_pos = np.unique(s, return_inverse=True)
+    sources = np.unique(item_src[planar])
+    s_of = np.full(n, -1, np.int64)
+    s_of[sources] = np.arange(len(sources))
+    r, s = item_node[near], item_src[near]
+    s_pos = s_of[s]
     k = RECEIVER_POINTS
     # --- each source's four parts: their corners (S, 4 parts, 4 corners, 3) -----------------
     poly = nodes.poly[sources].astype(np.float64)
@@ -775,6 +796,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # (a leaf's radiosity is its whole area's mean, its buried part dark: over its visible
     # part it is that over the visible share, and a leaf wholly buried says nothing)
     seen = 1.0 - state.buried[leaf_nodes]
+    centroid_of, cov = _area_moments(nodes, leaf_nodes, own_s, len(sources))
     wts = nodes.recv_w[leaf_nodes].astype(np.float64) * (nodes.area[leaf_nodes] * (seen > 1e-9))[:, None]
     normal = nodes.normal[sources]
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
@@ -807,29 +829,23 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     fit_w = nodes.recv_w[leaf_nodes].astype(np.float64)
     fit_pos = leaf_pos[leaf_nodes]
     rho = state.patch_rho[nodes.patch[leaves]]                # (L', C)
-    # --- the pairs' first moments (M', 3), in the source's plane frame ------------------------
-    lane = dr.arange(mi.UInt32, len(near) * k)
-    pair = lane // k
-    x = to_vector3(nodes.recv_pts[r].reshape(-1, 3))
-    nx = to_vector3(nodes.recv_nrm[r].reshape(-1, 3))
-    ns = dr.gather(mi.Vector3f, to_vector3(normal[s_pos]), pair)
-    lanes = []
-    for j in range(4):
-        corners = [dr.gather(mi.Vector3f, to_vector3(parts[s_pos, j, q]), pair) for q in range(4)]
-        front = dr.dot(ns, x - corners[0]) > 0.1 * state.offset
-        lanes.append(dr.select(front, point_to_polygon_dr(x, nx, corners), 0.0))
-    dr.eval(*lanes)
-    f = np.stack([np.asarray(a.numpy(), np.float64) for a in lanes], axis=1).reshape(len(near), k, 4)
-    f *= fill[s_pos][:, None, None]
-    centre = (parts[s_pos].mean(axis=2) - origin[s_pos][:, None]) / size[s_pos][:, None, None]   # (M', 4, 3)
-    w = nodes.recv_w[r].astype(np.float64)
-    vis = np.minimum(ff[near] / np.maximum((w * f.sum(axis=2)).sum(axis=1), 1e-300), 1.0)
-    # (tapered to nothing at the selection's edge, two radii away, where it is small: no pair
-    # jumps in or out of it)
-    taper = np.clip(2.0 - gap[near], 0.0, 1.0)
-    moment = np.einsum("mk,mkj,mjc->mc", w, f, centre) * (vis * taper)[:, None]
-    mu = np.stack([np.einsum("mc,mc->m", moment, t1[s_pos]), np.einsum("mc,mc->m", moment, t2[s_pos])], 1)
+    frame = (t1, t2)
+    mu = np.concatenate([
+        _near_moments(state, r, s_pos, parts, fill, normal, size, frame, item_ff[near] * taper[near]),
+        _far_moments(nodes, item_node[far], s_of[item_src[far]], centroid_of, cov, normal, size, frame,
+                     item_ff[far] * (1.0 - taper[far]))])
+    r = np.concatenate([r, item_node[far]])
+    s_pos = np.concatenate([s_pos, s_of[item_src[far]]])
+    # a gradient in the source's plane models a flat source: where its leaves turn away from
+    # that plane (the true surface of a tessellated cylinder), their radiosity varies with
+    # their orientation as much as with their place, which no plane gradient describes
+    tilt = np.ones(len(sources))
+    np.minimum.at(tilt, own_s, np.einsum("lc,lc->l", nodes.normal[leaf_nodes], normal[own_s]))
+    mu *= (tilt >= 1.0 - PLANE_NORMAL_TOL)[s_pos, None]
     pull = system.pull
+    # each source's transfers as power per unit radiosity, sum_r A_r F_rs
+    reach = np.bincount(s_of[item_src[planar]], weights=nodes.area[item_node[planar]] * item_ff[planar],
+                        minlength=len(sources))
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         b_node = pull @ b_leaf
@@ -844,10 +860,107 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
             rhs = np.stack([np.bincount(own_s, weights=per[:, j], minlength=len(sources)) for j in range(3)], axis=1)
             coef = np.einsum("sij,sj->si", inverse, rhs)       # [B at origin, dB/du, dB/dv]
             dh = (mu * coef[s_pos, 1:]).sum(axis=1)
-            out[:, ch] = np.bincount(leaf_pos[r], weights=dh, minlength=len(leaves))
+            # (on the receiver node: a leaf, or a face cluster whose leaves all take it)
+            node_dh = np.bincount(r, weights=dh, minlength=n)
+            # a gradient has zero mean over its source: its corrections only move the source's
+            # light between receivers. What the first moments leave of their sum (the light
+            # of its receivers through volume clusters, which carry the cluster's mean, and the
+            # expansions' own error) is taken back from all of its transfers by power
+            left = np.bincount(s_pos, weights=nodes.area[r] * dh, minlength=len(sources))
+            share = np.divide(left, reach, out=np.zeros(len(sources)), where=reach > 0)
+            node_dh -= np.bincount(item_node[planar], weights=item_ff[planar] * share[s_of[item_src[planar]]],
+                                   minlength=n)
+            out[:, ch] = to_leaves @ node_dh
         return out
 
     return extra
+
+
+def _area_moments(nodes: Nodes, leaf_nodes: np.ndarray, owner: np.ndarray, count: int):
+    """Centroid (S, 3) and covariance (S, 3, 3) of the area of each of ``count`` sources, from
+    its leaves (triangle nodes ``leaf_nodes``, of source ``owner``): a face cluster's bounding
+    rectangle is no model of an L-shaped or sparse cluster. A triangle's own covariance is
+    sum_i d_i d_i^T / 12 over its corners' offsets d_i from its centroid."""
+    corners = nodes.poly[leaf_nodes, :3].astype(np.float64)
+    centre = corners.mean(axis=1)
+    area = nodes.area[leaf_nodes]
+    total = np.maximum(np.bincount(owner, weights=area, minlength=count), 1e-300)
+    centroid = np.stack([np.bincount(owner, weights=area * centre[:, c], minlength=count) for c in range(3)],
+                        axis=1) / total[:, None]
+    dc = corners - centre[:, None]
+    offset = centre - centroid[owner]
+    own = np.einsum("lkc,lkd->lcd", dc, dc) / 12.0 + offset[:, :, None] * offset[:, None, :]
+    cov = np.stack([np.bincount(owner, weights=area * own[:, i, j], minlength=count)
+                    for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3) / total[:, None, None]
+    return centroid, cov
+
+
+def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.ndarray, fill: np.ndarray,
+                  normal: np.ndarray, size: np.ndarray, frame: tuple, ff: np.ndarray) -> np.ndarray:
+    """(M, 2) first moments of transfers recv <- sources s_pos (positions in the sources'
+    arrays) over the sources' four ``parts`` (S, 4, 4, 3) (exact form factors, times ``fill``),
+    at the receivers' points, in the sources' plane ``frame`` (t1, t2) and units of their
+    ``size``; scaled to the transfers' form factors ``ff`` (their visibility and weight)."""
+    nodes = state.nodes
+    k = RECEIVER_POINTS
+    if not len(recv):
+        return np.zeros((0, 2))
+    lane = dr.arange(mi.UInt32, len(recv) * k)
+    pair = lane // k
+    x = to_vector3(nodes.recv_pts[recv].reshape(-1, 3))
+    nx = to_vector3(nodes.recv_nrm[recv].reshape(-1, 3))
+    ns = dr.gather(mi.Vector3f, to_vector3(normal[s_pos]), pair)
+    lanes = []
+    for j in range(4):
+        corners = [dr.gather(mi.Vector3f, to_vector3(parts[s_pos, j, q]), pair) for q in range(4)]
+        front = dr.dot(ns, x - corners[0]) > 0.1 * state.offset
+        lanes.append(dr.select(front, point_to_polygon_dr(x, nx, corners), 0.0))
+    dr.eval(*lanes)
+    f = np.stack([np.asarray(a.numpy(), np.float64) for a in lanes], axis=1).reshape(len(recv), k, 4)
+    f *= fill[s_pos][:, None, None]
+    # (the parts' offsets from their mean, the source's centroid: the transfer already carries
+    # the source's mean radiosity, which is its field at the centroid)
+    part_centre = parts[s_pos].mean(axis=2)
+    centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[s_pos][:, None, None]   # (M, 4, 3)
+    w = nodes.recv_w[recv].astype(np.float64)
+    unoccluded = (w * f.sum(axis=2)).sum(axis=1)
+    scale = np.divide(ff, unoccluded, out=np.zeros(len(recv)), where=unoccluded > 0)
+    # (the parts' centroids hold 3/4 of the source's area covariance, each half-size part a
+    # quarter of it: 4/3 restores the moment of a kernel linear across each part)
+    moment = np.einsum("mk,mkj,mjc->mc", w, f, centre) * (4.0 / 3.0 * np.minimum(scale, 1.0))[:, None]
+    return np.stack([np.einsum("mc,mc->m", moment, frame[i][s_pos]) for i in range(2)], axis=1)
+
+
+def _far_moments(nodes: Nodes, recv: np.ndarray, s_pos: np.ndarray, centroid: np.ndarray, cov: np.ndarray,
+                 normal: np.ndarray, size: np.ndarray, frame: tuple, ff: np.ndarray) -> np.ndarray:
+    """(M, 2) first moments of transfers recv <- sources s_pos from afar: the leading term of
+    the kernel's expansion about the source's ``centroid``, F (grad_y log K)^T C_s, with C_s
+    the covariance of the source's area (``cov`` (S, 3, 3)) and the kernel's log-gradient
+    along the source's plane seen from the receiver's centre, n_x / (n_x . d) - 4 d / |d|^2
+    for d = y - x; in the sources' plane ``frame`` and units of their ``size``, scaled by ``ff``.
+    The expansion holds while the kernel changes by less than itself across the source: the
+    gradient is capped at 1 / R_s (a grazing receiver's centre would make it unbounded)."""
+    grad = kernel_log_gradient(nodes, recv, centroid[s_pos], size[s_pos])
+    cg = np.einsum("mij,mj->mi", cov[s_pos], grad)
+    weight = ff / size[s_pos]
+    return np.stack([np.einsum("mc,mc->m", cg, frame[i][s_pos]) for i in range(2)], axis=1) * weight[:, None]
+
+
+def kernel_log_gradient(nodes: Nodes, recv: np.ndarray, at: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(M, 3) 1/m: the gradient in y of log K(x, y), the receiver's side of the point kernel
+    (cos at x over the squared distance squared, n_x . d / |d|^4 for d = y - x), at points
+    ``at`` (M, 3) seen from receivers recv's centres: n_x / (n_x . d) - 4 d / |d|^2; zero where
+    the point is behind the receiver. (The source's own cosine varies only across its plane's
+    normal, which its area's covariance ignores.) A first-order expansion holds while the
+    kernel changes by less than itself across the source: capped at 1 / ``reach`` (M,), the
+    source's radius, where a grazing receiver's centre would make it unbounded."""
+    d = at - nodes.center[recv]
+    nx = nodes.normal[recv]
+    facing = np.einsum("mc,mc->m", nx, d)
+    grad = nx / np.where(facing > 0, facing, 1.0)[:, None] - 4.0 * d / np.maximum(
+        np.einsum("mc,mc->m", d, d), 1e-300)[:, None]
+    length = np.linalg.norm(grad, axis=1) * reach
+    return grad * (np.where(facing > 0, 1.0, 0.0) / np.maximum(length, 1.0))[:, None]
 
 
 def _leaf_positions_below(below: sp.csr_matrix, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -902,6 +1015,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     recv, src = links.recv[on_inner].astype(np.int64), links.src[on_inner].astype(np.int64)
     rays = np.where(link_partial[on_inner], GATHER_RAYS, 1)
     smooth_parts = []          # (leaf position, source, transfer, variance) from linear fits
+    smooth_links_at = []       # (receiver node, source, mean transfer) of the fitted links
     pairs = [(np.zeros(0, np.int64),) * 3]   # (leaf node, source, rays) to gather at the leaf's points
     seconds_in_waves = 0.0
     evaluated = 0
@@ -934,6 +1048,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         value = (a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])) * (1.0 - state.buried[leaves[leaf]])
         # the fit's residual is the interpolation's error, counted like visibility noise
         smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
+        smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1)))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth)
         kids = nodes.children[recv[rest]]
@@ -1050,7 +1165,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                                     tol=state.settings.solver_tolerance,
                                     max_iterations=state.settings.max_iterations)
     solve_time = time.perf_counter() - t1
-    extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_ff, g_pts) \
+    # every transfer of the gathered system, on the node it was evaluated on (a smooth link on
+    # its face cluster, the others on their leaves)
+    item_node, item_src, item_ff = (np.concatenate(
+        [a[keep], g] + [p[i] for p in stay] + [p[i] for p in smooth_links_at])
+        for i, (a, g) in enumerate(((links.recv, pair_node), (links.src, pair_src), (links.ff, g_ff))))
+    extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_ff, g_pts,
+                           item_node.astype(np.int64), item_src.astype(np.int64), item_ff.astype(np.float64)) \
         if LINEAR_SOURCES else None
     if extra is not None:
         t1 = time.perf_counter()
