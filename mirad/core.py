@@ -726,7 +726,7 @@ def output_share(state: State, ids: np.ndarray) -> np.ndarray:
 #: 8.7 -> 3.1 % (tolerance 0.2); ~10 % more time.
 LINEAR_SOURCES = True
 #: Fixed-point steps of the sources' linear radiosity (``linear_sources``).
-LINEAR_SOURCE_ITERATIONS = 2
+LINEAR_SOURCE_ITERATIONS = 1
 
 
 def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leaves: sp.csr_matrix,
