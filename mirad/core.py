@@ -1075,7 +1075,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
+    # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
+    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts]
+    kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
+        pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
         dist = distance_to_source(nodes, pair_node, pair_src)
         overhang = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
             (nodes.kind[pair_src] == FACE)
@@ -1087,20 +1091,19 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         uneven = error ** 2 > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
         split = (overhang | uneven) & (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & \
             (nodes.kind[pair_src] != VOLUME)
+        kept.append([a[~split] for a in pairs_now])
         if not split.any():
+            pairs_now = [a[:0] for a in pairs_now]
             break
         kids = nodes.children[pair_src[split]]
         own, slot = np.nonzero(kids >= 0)
         k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
         k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
         seconds_in_waves += k_seconds
-        g_pts = np.concatenate([g_pts[~split], k_pts])
-        pair_node = np.concatenate([pair_node[~split], k_node])
-        pair_src = np.concatenate([pair_src[~split], k_src])
-        pair_rays = np.concatenate([pair_rays[~split], k_rays])
-        g_ff = np.concatenate([g_ff[~split], k_ff])
-        g_var = np.concatenate([g_var[~split], k_var])
-        g_shadow = np.concatenate([g_shadow[~split], k_shadow])
+        pairs_now = [k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts]
+    kept.append(pairs_now)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
+                                                                    for i in range(7))
     # leaves that a shadow crosses, where their points' quadrature of it errs by more than
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
