@@ -1109,7 +1109,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
     h_node = h_node.copy()
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
+    # (as with the source splits, a pair kept once stays kept: each round looks only at the
+    # pairs the last one made, on the leaves it made)
+    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts]
+    kept = []
     for _ in range(MAX_SHADOW_SPLITS):
+        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow = pairs_now[:6]
         over = (g_shadow * output_share(state, pair_node) > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
                                                                            tol)) & \
             (nodes.kind[pair_node] == TRIANGLE) & nodes.splittable(state.min_area)[pair_node]
@@ -1123,18 +1128,17 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
         stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest]))
+        kept.append([a[~on_split] for a in pairs_now])
         kids = nodes.children[pair_node[over]]
         own, slot = np.nonzero(kids >= 0)
         k_node, k_src, k_rays = kids[own, slot].astype(np.int64), pair_src[over][own], pair_rays[over][own]
         k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
         seconds_in_waves += k_seconds
         evaluated += len(k_node)
-        keep = ~on_split
-        g_pts = np.concatenate([g_pts[keep], k_pts])
-        pair_node, pair_src, pair_rays = (np.concatenate([a[keep], k]) for a, k in
-                                          ((pair_node, k_node), (pair_src, k_src), (pair_rays, k_rays)))
-        g_ff, g_var, g_shadow = (np.concatenate([a[keep], k]) for a, k in
-                                 ((g_ff, k_ff), (g_var, k_var), (g_shadow, k_shadow)))
+        pairs_now = [k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts]
+    kept.append(pairs_now)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
+                                                                    for i in range(7))
     gathered_pairs = len(pair_node)
     n = len(nodes)
     final_leaves = nodes.leaves
