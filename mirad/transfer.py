@@ -240,28 +240,27 @@ def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
 
 
 def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v):
-    """The wave's per-ray lanes summed per receiver point, back in numpy (see ``_kernel``)."""
+    """The wave's per-ray lanes summed per receiver point and combined there, in Dr.Jit; back
+    in numpy as four (M, K) float32 arrays (see ``_kernel``)."""
     lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
              dr.select(traced, 1.0, 0.0)]
     dr.eval(*lanes)
-    sums = [dr.block_sum(a, r_count) for a in lanes[:6]]
+    g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in lanes[:6])
     n_traced = dr.sum(lanes[6])
-    dr.eval(*sums, n_traced)
-    g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (np.asarray(a.numpy(), np.float64).reshape(m, k) for a in sums)
-    g_e /= r_count
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
     # for the transfer and at each point for its spread; a point none of whose rays could be
     # aimed (grazing) takes the link's
     # (a ratio of sums over every ray of the link: over one point's few rays the ratio is
     # biased towards the area-weighted fraction)
-    ks_l, kv_l = k_s.sum(axis=1, keepdims=True), kv_s.sum(axis=1, keepdims=True)
-    vis_link = np.where(ks_l > 0, kv_l / np.where(ks_l > 0, ks_l, 1.0), 1.0)
-    vis_point = np.where(k_s > 0, kv_s / np.where(k_s > 0, k_s, 1.0), vis_link)
-    g_out = g_e + g_vol / r_count
-    gv_link = g_e * vis_link + g_vol_v / r_count
-    gv_point = g_e * vis_point + g_vol_v / r_count
-    return (g_out.astype(np.float32), gv_link.astype(np.float32), gv_point.astype(np.float32),
-            (g_vol_sq / r_count).astype(np.float32), int(round(float(n_traced[0]))))
+    ks_l, kv_l = dr.block_sum(k_s, k), dr.block_sum(kv_s, k)
+    vis_link = dr.gather(mi.Float, dr.select(ks_l > 0, kv_l / dr.select(ks_l > 0, ks_l, 1.0), 1.0),
+                         dr.arange(mi.UInt32, m * k) // k)
+    vis_point = dr.select(k_s > 0, kv_s / dr.select(k_s > 0, k_s, 1.0), vis_link)
+    g_e = g_e / r_count
+    out = (g_e + g_vol / r_count, g_e * vis_link + g_vol_v / r_count, g_e * vis_point + g_vol_v / r_count,
+           g_vol_sq / r_count)
+    dr.eval(*out, n_traced)
+    return tuple(np.asarray(a.numpy(), np.float32).reshape(m, k) for a in out) + (int(round(float(n_traced[0]))),)
 
 
 def pattern_size(rays_per_point: int) -> int:
