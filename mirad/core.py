@@ -170,13 +170,13 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
     """One transfer wave per ray count; returns the evaluated links (same order)."""
     t = time.perf_counter()
     out = Links(recv.astype(np.int32), src.astype(np.int32), *(np.zeros(len(recv), np.float32) for _ in range(5)),
-                rays.astype(np.int16))
+                rays.astype(np.int16), np.zeros(len(recv), np.float32))
     for r in np.unique(rays):
         idx = np.flatnonzero(rays == r)
         pt = _transfers(state, recv[idx], src[idx], int(r), state.settings.seed + 0x10000 * int(r))
         state.rays += pt.rays
         part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
-        for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread"):
+        for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread", "change"):
             getattr(out, name)[idx] = getattr(part, name)
     # links whose source is too near for the receiver's points: the same transfer summed
     # over the source's points bounds what those points missed

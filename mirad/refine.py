@@ -87,6 +87,8 @@ class Links:
     vis_std : (M,) float32     standard error of ff from visibility sampling
     spread : (M,) float32      mean absolute deviation of the point transfers over the receiver
     rays : (M,) int16          shadow rays per receiver point used
+    change : (M,) float32      the kernel's relative change across the source (``kernel_change``),
+                               kept with the link: the source term reads it every pass
     """
 
     recv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -97,8 +99,9 @@ class Links:
     vis_std: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     spread: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     rays: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int16))
+    change: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
-    _FIELDS = ("recv", "src", "ff", "ff_unocc", "err_ff", "vis_std", "spread", "rays")
+    _FIELDS = ("recv", "src", "ff", "ff_unocc", "err_ff", "vis_std", "spread", "rays", "change")
 
     def __len__(self) -> int:
         return len(self.recv)
@@ -175,7 +178,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
                                            rays[vol])
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
-                 rays.astype(np.int16))
+                 rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))
 
 
 def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -315,7 +318,7 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
     # a face cluster's own triangles get their light from the final gather (core.py): an
     # error in the cluster's mean reaches the output only once reflected again elsewhere
     receiver = scale * state.b_max[s] * EXPECTED_ABS * links.vis_std + face_mean_errors(nodes, links, state)
-    source = scale * links.ff * state.dev[s] * kernel_change(nodes, r, s)
+    source = scale * links.ff * state.dev[s] * links.change
     vol = np.flatnonzero(nodes.kind[s] == VOLUME)
     # a far cluster's transfer is a Monte Carlo estimate, its error the samples' (the
     # receiver term above) and its radiosity's variation (the source term); near it (within
