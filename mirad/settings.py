@@ -40,6 +40,11 @@ SOLVERS = ("gmres", "gauss-seidel", "jacobi")
 CORES = ("hierarchical", "legacy")
 SWITCHES = ("auto", "on", "off")
 ORACLES = ("kernel", "bf", "bound")
+#: Options that only the legacy core reads: with core="hierarchical" they are refused unless left
+#: at their defaults (the hierarchical core always clusters, never culls shafts, bounds its own
+#: errors and caps links, not elements). Shadow textures and the bf/bound oracles instead run the
+#: solve on the legacy core, with a warning (solver.uses_hierarchical_core).
+LEGACY_ONLY = ("shaft_culling", "clustering", "cluster_threshold", "link_error_scale", "max_elements")
 
 
 @dataclass(frozen=True)
@@ -115,7 +120,9 @@ class Settings:
         "hierarchical": links at any level between volume clusters, face clusters and
         triangles, exact unoccluded transfers, rays for visibility only (core.py);
         "legacy": links on receiver leaves with Monte Carlo transfers (solver.py). Shadow
-        textures and the ``bf``/``bound`` oracles run on the legacy core.
+        textures and the ``bf``/``bound`` oracles run on the legacy core (with a warning when
+        "hierarchical" was asked for); the options in ``LEGACY_ONLY`` are refused with
+        "hierarchical" unless left at their defaults.
     periodic : str or None, default None
         A periodic ("infinite") canopy: the lateral pattern box "amin,bmin,amax,bmax" (metres,
         the scene file's frame, along the two horizontal axes of ``periodic_up``: x and y for
@@ -193,6 +200,13 @@ class Settings:
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise SettingsError(f"scheduler={self.scheduler!r} must be a Dask scheduler address such as "
                                 "'tcp://10.0.0.5:8786'")
+        if self.core == "hierarchical":
+            defaults = {f.name: f.default for f in dataclasses.fields(self)}
+            ignored = [f"{name}={getattr(self, name)!r}" for name in LEGACY_ONLY if getattr(self, name) != defaults[name]]
+            if ignored:
+                raise SettingsError(f"{', '.join(ignored)}: only the legacy core reads {'it' if len(ignored) == 1 else 'them'}, "
+                                    "and core='hierarchical' would ignore it; leave it out, or add core='legacy' "
+                                    "(CLI: --core legacy)")
         if self.periodic is not None:
             from .periodic import parse_box
 

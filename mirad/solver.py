@@ -334,7 +334,14 @@ def uses_hierarchical_core(settings: Settings) -> bool:
     """Whether a solve runs on the hierarchical core (core.py): asked for, and no feature
     that only the legacy core has (shadow textures, the bf/bound oracles). Dask workers run
     either core's waves."""
-    return settings.core == "hierarchical" and not settings.shadow_textures and settings.oracle == "kernel"
+    if settings.core != "hierarchical":
+        return False
+    if settings.shadow_textures or settings.oracle != "kernel":
+        what = "shadow_textures=True" if settings.shadow_textures else f"oracle={settings.oracle!r}"
+        warnings.warn(f"{what} runs on the legacy core only: this solve uses core='legacy' (leave it out to "
+                      "solve on the hierarchical core)", stacklevel=3)
+        return False
+    return True
 
 
 def check_link_budget(scene: Scene, minimum: int, max_links: int, what: str) -> None:
@@ -530,6 +537,7 @@ def solve_problem(scene: Scene, settings: Settings):
         "estimated_error": estimated,
         "estimated_error_of_mean": estimated_of_mean,
         "error_bound": _error_bound(prob, b_elem, spread, reflected_mean),
+        "core": "legacy",
         "oracle": settings.oracle,
         "texture_links": int(np.count_nonzero(prob.links.vclass == TEXTURED)),
         "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
