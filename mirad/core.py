@@ -34,8 +34,7 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
-                    build_nodes,
-                    split_triangles, triangle_samples)
+                    build_nodes, split_triangles, triangle_samples)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
                      refinement_threshold, unresolved, volume_transfer_std)
@@ -730,7 +729,7 @@ LINEAR_SOURCE_ITERATIONS = 1
 
 
 def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leaves: sp.csr_matrix,
-                   pair_node: np.ndarray, pair_src: np.ndarray, ff: np.ndarray, points: np.ndarray,
+                   pair_node: np.ndarray, pair_src: np.ndarray, points: np.ndarray,
                    item_node: np.ndarray, item_src: np.ndarray, item_ff: np.ndarray):
     """What sources' radiosity gradients send to the leaves, which their means do not: a
     function b (L, C) -> extra irradiance (L, C) of the leaves, or None.
@@ -772,7 +771,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     s_of[sources] = np.arange(len(sources))
     r, s = item_node[near], item_src[near]
     s_pos = s_of[s]
-    k = RECEIVER_POINTS
     # --- each source's four parts: their corners (S, 4 parts, 4 corners, 3) -----------------
     poly = nodes.poly[sources].astype(np.float64)
     tri = nodes.kind[sources] == TRIANGLE
@@ -844,8 +842,9 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     mu *= (tilt >= 1.0 - PLANE_NORMAL_TOL)[s_pos, None]
     pull = system.pull
     # each source's transfers as power per unit radiosity, sum_r A_r F_rs
-    reach = np.bincount(s_of[item_src[planar]], weights=nodes.area[item_node[planar]] * item_ff[planar],
-                        minlength=len(sources))
+    bal_node, bal_pos, bal_ff = item_node[planar], s_of[item_src[planar]], item_ff[planar]
+    reach = np.bincount(bal_pos, weights=nodes.area[bal_node] * bal_ff, minlength=len(sources))
+    moved_area = nodes.area[r]
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         b_node = pull @ b_leaf
@@ -866,10 +865,9 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
             # light between receivers. What the first moments leave of their sum (the light
             # of its receivers through volume clusters, which carry the cluster's mean, and the
             # expansions' own error) is taken back from all of its transfers by power
-            left = np.bincount(s_pos, weights=nodes.area[r] * dh, minlength=len(sources))
+            left = np.bincount(s_pos, weights=moved_area * dh, minlength=len(sources))
             share = np.divide(left, reach, out=np.zeros(len(sources)), where=reach > 0)
-            node_dh -= np.bincount(item_node[planar], weights=item_ff[planar] * share[s_of[item_src[planar]]],
-                                   minlength=n)
+            node_dh -= np.bincount(bal_node, weights=bal_ff * share[bal_pos], minlength=n)
             out[:, ch] = to_leaves @ node_dh
         return out
 
@@ -1177,7 +1175,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     item_node, item_src, item_ff = (np.concatenate(
         [a[keep], g] + [p[i] for p in stay] + [p[i] for p in smooth_links_at])
         for i, (a, g) in enumerate(((links.recv, pair_node), (links.src, pair_src), (links.ff, g_ff))))
-    extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_ff, g_pts,
+    extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_pts,
                            item_node.astype(np.int64), item_src.astype(np.int64), item_ff.astype(np.float64)) \
         if LINEAR_SOURCES else None
     if extra is not None:

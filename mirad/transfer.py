@@ -141,8 +141,8 @@ def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, off
     y = dr.gather(mi.Vector3f, buf.recv_pts, s * k + lane % k)
     ny = dr.gather(mi.Vector3f, buf.recv_nrm, s * k + lane % k)
     corners = [dr.gather(mi.Vector3f, c, r) for c in buf.poly]
-    front = dr.dot(dr.gather(mi.Vector3f, buf.normal, r), y - corners[0]) > 0.1 * offset
-    value = dr.select(front, point_to_polygon_dr(y, ny, corners) * dr.gather(mi.Float, buf.fill, r), 0.0)
+    value = _point_form_factor(buf, y, ny, corners, dr.gather(mi.Vector3f, buf.normal, r),
+                               dr.full(mi.Bool, True, m * k), r, offset)
     dr.eval(value)
     return np.asarray(value.numpy(), np.float64).reshape(m, k)
 
