@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 
 
@@ -491,14 +492,29 @@ def main(argv=None) -> int:
     import warnings
 
     try:
-        from mirad.errors import MiradError
-        from mirad.files import Terminated, raise_on_sigterm
+        from mirad.files import raise_on_sigterm
     except Exception as exc:  # pragma: no cover - broken installation
         print(f"mirad: error: cannot import mirad ({exc})", file=sys.stderr)
         return 2
     args = parser().parse_args(argv)
+    # main() is also called in-process (tests, notebooks): what it changes process-wide for the
+    # command's run, it puts back when the command returns
+    previous_show = warnings.showwarning
     warnings.showwarning = _show_warning
-    raise_on_sigterm()
+    previous_sigterm = raise_on_sigterm()
+    try:
+        return _run_command(args)
+    finally:
+        warnings.showwarning = previous_show
+        if previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, previous_sigterm)
+
+
+def _run_command(args) -> int:
+    """Run one parsed command; errors become a message and an exit status, never a traceback."""
+    from mirad.errors import MiradError
+    from mirad.files import Terminated
+
     try:
         _check_variant(getattr(args, "variant", None))
         return {"solve": _solve, "info": _info, "validate": _validate, "render": _render,

@@ -36,12 +36,18 @@ class Terminated(BaseException):
     writes clean up their temporary files before the process exits."""
 
 
-def raise_on_sigterm() -> None:
-    """Make SIGTERM raise :class:`Terminated` in the main thread (the CLI installs this)."""
+def raise_on_sigterm():
+    """Make SIGTERM raise :class:`Terminated` in the main thread (the CLI installs this while a
+    command runs). Returns the handler it replaced, for ``signal.signal`` to put back, or None where
+    it installed nothing (called outside the main thread, which may not set handlers)."""
     def handler(signum, frame):
         raise Terminated(signum)
 
-    signal.signal(signal.SIGTERM, handler)
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, handler)
 
 
 def _umask() -> int:

@@ -184,6 +184,9 @@ class Shading:
         leaf = dr.zeros(mi.UInt32, dr.width(p))
         uv = dr.zeros(mi.Point2f, dr.width(p))
         found = dr.zeros(mi.Bool, dr.width(p))
+        # each ray query on another mi.Scene gets a kernel of its own: OptiX (cuda_ad_rgb) refuses
+        # two scenes' queries in one kernel and drops the second (the plugin rendered black there)
+        dr.eval(p, n, back, shape, active, depth)
         for s, locator in enumerate(self.locators):
             if locator is None:
                 continue
@@ -199,6 +202,7 @@ class Shading:
                 leaf = dr.select(ok, row, leaf)
                 uv = dr.select(ok, pi.prim_uv, uv)
                 found |= ok
+                dr.eval(leaf, uv, found)
         return leaf, uv, found
 
     def radiance(self, si, ray_d, active, *, smooth: bool):

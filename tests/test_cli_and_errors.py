@@ -252,3 +252,19 @@ def test_cli_refuses_a_render_pass_memory_cannot_hold(tmp_path):
     assert result.returncode == 2
     assert "spp=1000000000" in result.stderr and "Traceback" not in result.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_cli_main_called_in_process_puts_back_the_handlers_it_changed(tmp_path, capsys):
+    """main() turns SIGTERM into a clean exit and shows warnings in one line while a command runs;
+    called from Python (a notebook, a test run) it must leave the process as it found it: a SIGTERM
+    handler left behind turned a later timeout's SIGTERM into an exception in unrelated code."""
+    import signal
+    import warnings
+
+    from mirad.cli import main
+
+    before_sigterm, before_show = signal.getsignal(signal.SIGTERM), warnings.showwarning
+    assert main(["info", str(CORNELL)]) == 0
+    assert main(["solve", str(tmp_path / "missing.xml"), "-o", str(tmp_path / "out.ply"), "--quiet"]) == 2
+    assert signal.getsignal(signal.SIGTERM) is before_sigterm
+    assert warnings.showwarning is before_show
