@@ -540,12 +540,13 @@ class Gathered:
 
     irradiance: np.ndarray
     noise_power: np.ndarray
-    iterations: int = 0          # of the solve on the gathered system
+    iterations: int = 0          # of the solves on the gathered system
     pairs: int = 0               # (receiver, source) pairs evaluated
     leaves: np.ndarray | None = None     # (L',) the leaves after the gather's own splits
     system: LeafSystem | None = None     # the gathered system over them
     regathered: np.ndarray | None = None  # (M,) bool: links whose transfers it replaced
     source_power: np.ndarray | None = None  # (L',) W: its transfers' source terms (as refine's)
+    iterations_max: int = 0      # the most iterations any one of its solves took
 
 
 #: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
@@ -1169,6 +1170,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     b, iterations, _ = solve_system(final, inherited(state, start, final_leaves), method=state.settings.solver,
                                     tol=state.settings.solver_tolerance,
                                     max_iterations=state.settings.max_iterations)
+    iterations_max = iterations
     solve_time = time.perf_counter() - t1
     # every transfer of the gathered system, on the node it was evaluated on (a smooth link on
     # its face cluster, the others on their leaves)
@@ -1186,6 +1188,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             b, more, _ = solve_system(final, b, method=state.settings.solver, tol=state.settings.solver_tolerance,
                                       max_iterations=state.settings.max_iterations)
             iterations += more
+            iterations_max = max(iterations_max, more)
         final.emission = base
         solve_time += time.perf_counter() - t1
     state.timing["solve"] += solve_time
@@ -1199,7 +1202,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
     return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final,
-                    inner[links.recv], source_power)
+                    inner[links.recv], source_power, int(iterations_max))
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -1378,7 +1381,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     _, capped = refine(state, empty, np.finfo(float).max, max_links)
     direct(state, state.nodes.leaves, min(settings.samples_per_link, MAX_DIRECT_SAMPLES))
     solved = solve(state, None)
-    iterations = solved.iterations
+    iterations = iterations_max = solved.iterations
     bar.update(1)
     passes = 0
     history = []
@@ -1411,6 +1414,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
                 break
             solved = solve(state, solved)
             iterations += solved.iterations
+            iterations_max = max(iterations_max, solved.iterations)
     finally:
         # the passes it took are the whole bar, which stays with the final estimate
         bar.total = bar.n
@@ -1433,10 +1437,11 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     elif est.relative > settings.tolerance:
         warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
                       f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
-    return _solution(state, solved, gathered, est, passes, iterations, capped, t_start, history)
+    return _solution(state, solved, gathered, est, passes, (iterations, iterations_max), capped, t_start, history)
 
 
 def _solution(state, solved, gathered, est, passes, iterations, capped, t_start, history):
+    """The Solution and its stats; ``iterations``: (summed, most in one solve) over the passes."""
     from .solution import Solution
 
     scene, settings, nodes = state.scene, state.settings, state.nodes
@@ -1474,7 +1479,9 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
         "visibility_classes": {"partial": int(np.count_nonzero(state.links.vis_std > 0)),
                                "links": int(len(state.links))},
         "solver": settings.solver,
-        "solver_iterations": int(iterations + gathered.iterations),
+        # (summed over the passes' warm-started solves and the gather's; the most one solve took)
+        "solver_iterations": int(iterations[0] + gathered.iterations),
+        "solver_iterations_max": int(max(iterations[1], gathered.iterations_max)),
         "gather_pairs": int(gathered.pairs),
         "solver_residual": float(solved.residual),
         "refine_passes": int(passes),

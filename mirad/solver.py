@@ -428,7 +428,7 @@ def solve_problem(scene: Scene, settings: Settings):
     leaves = prob.elements.leaves
     system = prob.system(leaves)
     b_leaf, iterations, residual = prob.solve(system, system.emission.copy())
-    total_iterations = iterations
+    total_iterations = most_iterations = iterations
     bar.update(1)
 
     # --- multigridding: refine against a shrinking power budget, re-solve ------------------
@@ -474,6 +474,7 @@ def solve_problem(scene: Scene, settings: Settings):
                     system = prob.system(leaves)
                     b_leaf, iterations, residual = prob.solve(system, x0)
                     total_iterations += iterations
+                    most_iterations = max(most_iterations, iterations)
                 bar.update(1)
                 bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
                 if not (refined or resampled) or capped:
@@ -492,6 +493,7 @@ def solve_problem(scene: Scene, settings: Settings):
             system = prob.system(leaves)
             b_leaf, iterations, residual = prob.solve(system, b_leaf)
             total_iterations += iterations
+            most_iterations = max(most_iterations, iterations)
             b_elem = system.pull @ b_leaf
             fresh = _estimate(prob, b_elem, _radiosity_spread(prob, system, b_elem),
                               _reflected_mean(prob, leaves, b_leaf))
@@ -543,6 +545,7 @@ def solve_problem(scene: Scene, settings: Settings):
         "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
         "solver": settings.solver,
         "solver_iterations": int(total_iterations),
+        "solver_iterations_max": int(most_iterations),      # the most one solve took
         "solver_residual": float(residual),
         "refine_passes": passes,
         "clusters": 0 if prob.clusters is None else int(prob.clusters.count),

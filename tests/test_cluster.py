@@ -60,19 +60,21 @@ def test_sphere_bound_contains_the_exact_form_factor_of_a_cluster(seed):
 
 @pytest.mark.parametrize("tolerance", [0.1, 0.05])
 def test_clustered_and_all_pairs_solutions_agree_within_tolerance(cornell, tolerance):
-    plain = mirad.solve(cornell, tolerance=tolerance, clustering="off")
-    clustered = mirad.solve(cornell, tolerance=tolerance, clustering="on")
+    plain = mirad.solve(cornell, tolerance=tolerance, clustering="off", core="legacy")
+    clustered = mirad.solve(cornell, tolerance=tolerance, clustering="on", core="legacy")
     area = cornell.tri_area[:, None]
     reflected = area_mean(np.maximum(plain.triangle_radiosity - cornell.tri_emission, 0), cornell.tri_area).mean()
     diff = (area * np.abs(clustered.triangle_radiosity - plain.triangle_radiosity)).sum() / area.sum() / 3
     assert diff / reflected <= tolerance
 
 
-def test_energy_balance_with_clusters():
+@pytest.mark.parametrize("options", [dict(clustering="on", core="legacy"), dict(core="hierarchical")],
+                         ids=["legacy", "hierarchical"])
+def test_energy_balance_with_clusters(options):
     box = closed_box(0.6, 0.0)
     box["floor"]["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": 1 / np.pi}}
     scene = mirad.load_scene(box)
-    sol = mirad.solve(scene, tolerance=0.02, clustering="on")
+    sol = mirad.solve(scene, tolerance=0.02, **options)
     absorbed = (sol.triangle_area * (1 - scene.tri_rho[:, 0]) * sol.triangle_irradiance[:, 0]).sum()
     emitted = (sol.triangle_area * scene.tri_emission[:, 0]).sum()
     assert absorbed == pytest.approx(emitted, rel=0.01)
@@ -83,13 +85,13 @@ def test_clustering_starts_with_one_link_per_patch():
     from mirad.solver import Problem
 
     scene = mirad.load_scene(closed_box(0.5, 1 / np.pi))
-    prob = Problem(scene, make_settings(clustering="on"))
+    prob = Problem(scene, make_settings(clustering="on", core="legacy"))
     recv, src = prob.initial_pairs()
     assert len(recv) == len(scene.patch_tri)                 # P links, not P^2
     assert np.all(src == prob.elements.first_cluster)        # all to the root
 
 
 def test_auto_clustering_switches_on_above_the_threshold(cornell):
-    assert mirad.solve(cornell, tolerance=0.1).stats["clusters"] == 0            # 36 patches
-    sol = mirad.solve(cornell, tolerance=0.1, cluster_threshold=10)
+    assert mirad.solve(cornell, tolerance=0.1, core="legacy").stats["clusters"] == 0     # 36 patches
+    sol = mirad.solve(cornell, tolerance=0.1, cluster_threshold=10, core="legacy")
     assert sol.stats["clusters"] == len(cornell.patch_tri) - 1

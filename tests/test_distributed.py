@@ -61,7 +61,7 @@ def test_hierarchical_solve_closes_its_workers_on_error(monkeypatch):
 def test_any_split_of_a_wave_gives_bitwise_the_same_links(evaluator, monkeypatch):
     """Element and cluster links, split into many small batches over the workers."""
     scene, ev = evaluator
-    prob = Problem(scene, mirad.make_settings(clustering="on"))
+    prob = Problem(scene, mirad.make_settings(clustering="on", core="legacy"))
     geo = prob.geometry()
     recv_c, src_c = prob.initial_pairs()                      # every patch <- the root cluster
     rng = np.random.default_rng(3)

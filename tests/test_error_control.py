@@ -60,7 +60,7 @@ def test_classification_on_constructed_cases(occluder, shift, expected):
 
 def test_classes_never_contradict_dense_rays_on_the_cornell_box(cornell):
     """Every link proven visible (blocked) sees all (none) of 64 independent rays arrive."""
-    sol_settings = make_settings(tolerance=0.1, shaft_culling="on", quiet=True)
+    sol_settings = make_settings(tolerance=0.1, shaft_culling="on", core="legacy", quiet=True)
     prob = Problem(cornell, sol_settings)
     recv, src = prob.initial_pairs()
     links = prob.evaluate(recv, src, prob.geometry())
@@ -83,7 +83,7 @@ def test_classes_never_contradict_dense_rays_on_the_cornell_box(cornell):
 
 def test_blocked_links_trace_no_rays_and_carry_nothing():
     scene = mirad.load_scene(_plates_with_occluder(2.0, 0.0))
-    prob = Problem(scene, make_settings(shaft_culling="on", quiet=True))
+    prob = Problem(scene, make_settings(shaft_culling="on", core="legacy", quiet=True))
     r = np.flatnonzero(scene.tri_shape == scene.shape_index("receiver"))
     s = np.flatnonzero(scene.tri_shape == scene.shape_index("emitter"))
     links = prob.evaluate(np.repeat(r, 2), np.tile(s, 2), prob.geometry())
@@ -125,7 +125,7 @@ def test_transfer_bounds_contain_dense_estimates(data):
         params.update()
         scene[name] = mesh
     sc = mirad.load_scene(scene)
-    prob = Problem(sc, make_settings(shaft_culling="on", quiet=True))
+    prob = Problem(sc, make_settings(shaft_culling="on", core="legacy", quiet=True))
     r = np.array([sc.shape_index("recv")])
     s = np.array([sc.shape_index("src")])
     if not prob.facing_pairs(r, s).all():
@@ -174,7 +174,7 @@ def test_bound_estimate_covers_the_furnace_error():
 
 def test_culling_changes_rays_not_the_solution(cornell):
     plain = mirad.solve(cornell, tolerance=0.1, quiet=True)
-    culled = mirad.solve(cornell, tolerance=0.1, shaft_culling="on", quiet=True)
+    culled = mirad.solve(cornell, tolerance=0.1, shaft_culling="on", core="legacy", quiet=True)
     assert culled.stats["rays"] < 0.8 * plain.stats["rays"]
     a = culled.triangle_area
     diff = np.abs(culled.triangle_radiosity - plain.triangle_radiosity).sum(1) @ a
@@ -182,9 +182,11 @@ def test_culling_changes_rays_not_the_solution(cornell):
 
 
 def test_error_map_is_exported(cornell, tmp_path):
+    """The legacy core's map, in its norm (the hierarchical core's, in its own:
+    test_core.test_the_error_map_integrates_to_the_estimate_in_its_norm)."""
     import trimesh
 
-    sol = mirad.solve(cornell, tolerance=0.1, quiet=True)
+    sol = mirad.solve(cornell, tolerance=0.1, core="legacy", quiet=True)
     err = sol.triangle_error
     assert err.shape == sol.triangle_radiosity.shape and np.all(err >= 0) and err.max() > 0
     # the map's area integral over A_total * mean reflected B is the estimate

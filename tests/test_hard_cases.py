@@ -47,7 +47,7 @@ def corner(tmp_path_factory):
 
 def test_adjacent_polygons_form_factors_and_row_sums_stay_bounded(corner):
     scene, _ = corner
-    prob = Problem(scene, make_settings(clustering="off"))
+    prob = Problem(scene, make_settings(clustering="off", core="legacy"))
     prob.elements.split(prob.elements.leaves)          # one level below the patches: 4x the edges
     prob.update_direct(np.arange(len(prob.elements)))
     leaves = prob.elements.leaves
@@ -137,7 +137,7 @@ def _lit_floor(tmp_path, jitter=0.0):
 
 def test_coplanar_elements_exchange_exactly_nothing(tmp_path):
     scene = _lit_floor(tmp_path)
-    prob = Problem(scene, make_settings(clustering="off"))
+    prob = Problem(scene, make_settings(clustering="off", core="legacy"))
     floor = np.flatnonzero(scene.tri_shape[scene.patch_tri] == scene.shape_index("floor"))
     recv, src = np.repeat(floor, len(floor)), np.tile(floor, len(floor))
     keep = recv != src
@@ -153,7 +153,7 @@ def test_nearly_coplanar_elements_do_not_shadow_themselves(tmp_path, jitter):
     # links to the floor must see every ray pass (rays leave the floor at grazing-free angles but start
     # next to nearly coplanar neighbours), and the floor's radiosity must equal the flat floor's
     scene = _lit_floor(tmp_path, jitter=jitter)
-    prob = Problem(scene, make_settings(clustering="off"))
+    prob = Problem(scene, make_settings(clustering="off", core="legacy"))
     recv, src = prob.initial_pairs()
     links = prob.evaluate(recv, src, prob.geometry())
     from_light = scene.tri_shape[scene.patch_tri[links.src]] == scene.shape_index("light")
@@ -177,9 +177,11 @@ def test_near_white_furnace_converges_with_the_default_solver_and_jacobi_is_not_
     sol = mirad.solve(box, tolerance=0.05)
     np.testing.assert_allclose(sol.triangle_radiosity, 100.0, rtol=0.01)
     jacobi = mirad.solve(box, tolerance=0.05, solver="jacobi")
-    # measured 2026-11-23: gmres 10 iterations, Jacobi 921 (rho^k: ~ln(1e-6)/ln(0.99) sweeps)
-    assert sol.stats["solver_iterations"] <= 30
-    assert jacobi.stats["solver_iterations"] >= 20 * sol.stats["solver_iterations"]
+    # measured 2026-11-23 (legacy core): gmres 10 iterations, Jacobi 921 (rho^k: ~ln(1e-6)/ln(0.99)
+    # sweeps). Either core solves once per refinement pass, warm-started; what a solver is worth
+    # shows in the most one solve took
+    assert sol.stats["solver_iterations_max"] <= 30
+    assert jacobi.stats["solver_iterations_max"] >= 20 * sol.stats["solver_iterations_max"]
 
 
 # --- 5. tiny bright source ---------------------------------------------------------------------
@@ -336,13 +338,17 @@ def test_duplicates_and_non_manifold_edges_are_detected_warned_once_and_solved(t
 
 # --- 10. many emitters ---------------------------------------------------------------------------
 
-def test_a_thousand_small_lights_emit_their_total_power_into_a_closed_room(tmp_path):
+# The floor's mean within REF_REL is stricter than either tolerance asks. The legacy core met it at
+# 0.2 (3 s; 0.05 takes ~95 s on 2 cores, see bench_hard_cases); the hierarchical core's floor is
+# +3.0 % there (estimate 2.2 %, 16,384-path reference) and +1.3 % at 0.1, which takes it 1.1 s
+@pytest.mark.parametrize("core, tolerance", [("legacy", 0.2), ("hierarchical", 0.1)])
+def test_a_thousand_small_lights_emit_their_total_power_into_a_closed_room(tmp_path, core, tolerance):
     scene = mirad.load_scene(cases.many_lights_room(tmp_path, count=1000))
     lamps = np.flatnonzero(np.char.startswith(np.array(scene.shape_ids), "lamp-"))
     assert len(lamps) == 1000 and scene.features["emitters"]["area (triangles)"] == 2000
     emitted = (scene.tri_area * scene.tri_emission[:, 0]).sum()
     assert emitted == pytest.approx(1000 * np.pi * 1e-4, rel=1e-4)     # 1000 x (1 cm)^2 x pi x 1
-    sol = mirad.solve(scene, tolerance=0.2)     # 3 s; 0.05 takes ~95 s on 2 cores (see bench_hard_cases)
+    sol = mirad.solve(scene, tolerance=tolerance, core=core)
     # every watt ends on a front side (black ceiling: nothing reaches the lamps' backs)
     absorbed = (sol.triangle_area * (1 - scene.tri_rho[:, 0]) * sol.triangle_irradiance[:, 0]).sum()
     assert absorbed == pytest.approx(emitted, rel=0.02)

@@ -84,7 +84,7 @@ def test_bad_boxes_are_refused_naming_the_parameter_and_the_fix(value, words):
 
 def test_the_legacy_core_and_a_bad_up_axis_are_refused():
     with pytest.raises(SettingsError, match="core='hierarchical'"):
-        mirad.Settings(periodic="-1,-1,1,1")
+        mirad.Settings(periodic="-1,-1,1,1", core="legacy")
     with pytest.raises(SettingsError, match="periodic_up"):
         mirad.Settings(periodic="-1,-1,1,1", periodic_up="up", core="hierarchical")
 

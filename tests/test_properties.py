@@ -78,7 +78,7 @@ def _scene(size, rhos, occ, *, pre=None, floor_light=False):
 def test_sampled_form_factors_are_reciprocal_between_unoccluded_faces(box):
     size, rhos, _ = box
     scene = mirad.load_scene(_scene(size, rhos, None, floor_light=True))
-    prob = Problem(scene, make_settings(samples_per_link=256, clustering="off"))   # sampling noise < 1 %
+    prob = Problem(scene, make_settings(samples_per_link=256, clustering="off", core="legacy"))   # sampling noise < 1 %
     recv, src = prob.initial_pairs()
     links = prob.evaluate(recv, src, prob.geometry())
     assert np.all(links.ff >= 0) and np.all(links.ff <= 1)

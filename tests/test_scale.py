@@ -52,7 +52,7 @@ def test_per_leaf_absorbed_power(make, tmp_path):
     """Per-leaf absorbed power from the per-triangle table: pairs of triangles, summing to the
     shape summary; every leaf absorbs something (sky light reaches all of them)."""
     path = make.make_canopy(tmp_path / "c", plants=2, leaves_per_plant=40, seed=1)
-    sol = mirad.solve(path, tolerance=0.2, clustering="on")
+    sol = mirad.solve(path, tolerance=0.2)
     table = export.triangle_table(sol)
     summary = export.shape_summary(sol)
     absorbed = table["absorbed"]                                       # (T, C) W
