@@ -107,9 +107,12 @@ def _info(args) -> int:
     from mirad.settings import Settings
 
     patches = len(scene.patch_tri)
-    threshold = Settings().cluster_threshold
-    print(f"  clusters of patches as link sources (clustering='auto'): "
-          f"{'on' if patches > threshold else 'off'} ({patches} patches, threshold {threshold})")
+    defaults = Settings()
+    print(f"  solver core (core={defaults.core!r}, the default): face clusters over each planar group and "
+          f"volume clusters above them, always")
+    print(f"  with core='legacy', clusters of patches as link sources (clustering='auto'): "
+          f"{'on' if patches > defaults.cluster_threshold else 'off'} ({patches} patches, "
+          f"threshold {defaults.cluster_threshold})")
     if features["non_diffuse_approximated"]:
         print(f"  non-diffuse BSDFs approximated by their albedo: {features['non_diffuse_approximated']}")
     if features["translucent_leaf_triangles"]:

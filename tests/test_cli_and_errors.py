@@ -28,7 +28,9 @@ def test_cli_info_reports_features():
     res = run_cli("info", CORNELL)
     assert res.returncode == 0, res.stderr
     assert "channels solved: 3" in res.stdout and "area (triangles)" in res.stdout
-    assert "clustering='auto'): off (36 patches" in res.stdout        # small scene: all pairs
+    assert "solver core (core='hierarchical', the default)" in res.stdout
+    assert "with core='legacy', clusters of patches as link sources (clustering='auto'): off (36 patches" \
+        in res.stdout                                                   # small scene: all pairs
 
 
 def _write(tmp_path, name, text):
