@@ -122,3 +122,24 @@ def test_mirad_has_no_import_cycle():
     for node in sorted(graph):
         if node not in state:
             visit(node, [node])
+
+
+@pytest.mark.parametrize("options, words", [
+    ({"tolerance": "0.1"}, ["tolerance='0.1'", "must be a number"]),
+    ({"tolerance": float("nan")}, ["tolerance=nan", "finite"]),
+    ({"quiet": "false"}, ["quiet='false'", "True or False"]),
+    ({"max_links": 2.5}, ["max_links=2.5", "integer"]),
+])
+def test_type_checks_hold_when_the_annotations_are_evaluated(options, words, monkeypatch):
+    """Settings' field annotations are strings here (``from __future__ import annotations``); a
+    tool that evaluates them leaves the types themselves in ``dataclasses.fields`` (seen on a GPU
+    machine's Python 3.12 test run, where these settings then passed unchecked)."""
+    import typing
+
+    hints = typing.get_type_hints(Settings)
+    for field in dataclasses.fields(Settings):
+        monkeypatch.setattr(field, "type", hints[field.name])
+    assert not isinstance(dataclasses.fields(Settings)[0].type, str)
+    with pytest.raises(mirad.SettingsError) as caught:
+        Settings(**options)
+    assert all(word in str(caught.value) for word in words)
