@@ -218,7 +218,10 @@ def test_ctrl_c_during_a_solve_leaves_no_file_and_a_clean_message(tmp_path):
     out = tmp_path / "out.ply"
     proc = subprocess.Popen([sys.executable, "-m", "mirad.cli", "solve", str(SCENES / "wall-pierce" / "scene.xml"),
                              "--tolerance", "0.01", "-o", str(out)], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True)
+                            text=True,
+                            # a test run started in the background ('&' in a script) ignores SIGINT, and
+                            # its children inherit that: Ctrl-C must mean what it means at a terminal
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.time() + 120
         seen = ""
