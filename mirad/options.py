@@ -14,7 +14,7 @@ import dataclasses
 import re
 
 from .errors import SettingsError
-from .settings import CORES, MAX_SAMPLES_PER_LINK, ORACLES, SOLVERS, SWITCHES, Settings
+from .settings import CORES, MAX_SAMPLES_PER_LINK, ORACLES, SOLVERS, SWITCHES, Settings, annotation_text
 
 __all__ = ["Option", "SOLVE", "RENDER", "PLUGIN", "add_arguments", "given", "check_render"]
 
@@ -58,11 +58,12 @@ def _docstring_help(doc: str) -> dict:
     return out
 
 
-def _settings_options() -> tuple:
+def settings_options() -> tuple:
+    """One Option per field of Settings, in order, from its annotation, default and docstring."""
     helps = _docstring_help(Settings.__doc__)
     options = []
     for f in dataclasses.fields(Settings):
-        kind_text = str(f.type).replace(" ", "")
+        kind_text = annotation_text(f.type).replace(" ", "")
         optional = "None" in kind_text
         kind = _KINDS[kind_text.replace("|None", "")]
         options.append(Option(f.name, kind, f.default, optional, _CHOICES.get(f.name), helps.get(f.name, "")))
@@ -70,7 +71,7 @@ def _settings_options() -> tuple:
 
 
 #: Solver options: one per field of Settings, same order.
-SOLVE = _settings_options()
+SOLVE = settings_options()
 
 #: Display options of ``mirad.render``, ``mirad render`` and the plugin.
 RENDER = (

@@ -226,7 +226,7 @@ class Settings:
         integral, switches booleans: the message names the field and the fix."""
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            kind = _type_name(f.type)
+            kind = annotation_text(f.type)
             if value is None and "None" in kind:
                 continue
             if kind.startswith("bool"):
@@ -245,7 +245,7 @@ class Settings:
         return dataclasses.replace(self, **changes)
 
 
-def _type_name(annotation) -> str:
+def annotation_text(annotation) -> str:
     """A field's annotation as written ("float", "int | None"), whether the interpreter kept it as
     a string (``from __future__ import annotations``) or something evaluated it to the type (on a
     GPU machine's Python 3.12 test run ``str(float)`` read "<class 'float'>" and the type checks

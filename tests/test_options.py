@@ -136,6 +136,8 @@ def test_type_checks_hold_when_the_annotations_are_evaluated(options, words, mon
     machine's Python 3.12 test run, where these settings then passed unchecked)."""
     import typing
 
+    from mirad import options as options_module
+
     hints = typing.get_type_hints(Settings)
     for field in dataclasses.fields(Settings):
         monkeypatch.setattr(field, "type", hints[field.name])
@@ -143,3 +145,6 @@ def test_type_checks_hold_when_the_annotations_are_evaluated(options, words, mon
     with pytest.raises(mirad.SettingsError) as caught:
         Settings(**options)
     assert all(word in str(caught.value) for word in words)
+    # the CLI's and plugin's option table reads the same annotations
+    assert [(o.name, o.kind, o.optional) for o in options_module.settings_options()] == \
+        [(o.name, o.kind, o.optional) for o in options_module.SOLVE]
