@@ -631,16 +631,28 @@ def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray
     return np.where(rays > 1, np.maximum(rms * rms - noise, 0.0) / RECEIVER_POINTS, 0.0)
 
 
-def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
+def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: bool = False):
     """Least-squares linear fields v(x) = a + g . (x - x0) in the planes of receivers recv
     (M,) through values (M, K) at their K points.
+
+    ``weighted``: each point counts with its quadrature weight (``nodes.recv_w``) and x0 is
+    their weighted mean. The fit then keeps the quadrature's mean (a = sum_k w_k v_k); where
+    the rule is exact for linear fields (a triangle's Dunavant points) x0 is the receiver's
+    centroid, and the fit read at the centroids of the patches below, summed over their
+    areas, sends exactly the transfer the points measured. The plain fit of a curved field
+    over a triangle's unequally weighted points loses or gains light (a white closed box
+    refined to tolerance 0.03 read 1.1 % dark with rho = 0.9: row sums 0.1 % short, times
+    1 / (1 - rho); now +0.2 %).
 
     Returns x0 (M, 3), a (M,), g (M, 3) (in the plane) and the residual's standard
     deviation (M,) with K - 3 degrees of freedom, in the values' units."""
     ids, inverse = np.unique(recv, return_inverse=True)
     points = nodes.recv_pts[ids].astype(np.float64)
     normal = nodes.normal[ids]
-    x0 = points.mean(axis=1)
+    k_count = points.shape[1]
+    w = nodes.recv_w[ids].astype(np.float64) if weighted else np.full(points.shape[:2], 1.0 / k_count)
+    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    x0 = np.einsum("mk,mkc->mc", w, points)
     d = points - x0[:, None]
     d = d - np.einsum("mkc,mc->mk", d, normal)[..., None] * normal[:, None]
     # offsets in units of the receiver's radius: the design is dimensionless, so the fit
@@ -656,13 +668,16 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray):
     t2 = np.cross(normal, t1)
     uv = np.stack([np.einsum("mkc,mc->mk", d, t1), np.einsum("mkc,mc->mk", d, t2)], axis=2) / size[:, None, None]
     design = np.concatenate([np.ones(d.shape[:2] + (1,)), uv], axis=2)                       # (U, K, 3)
-    gram = np.einsum("mkp,mkq->mpq", design, design)
+    # (weights scaled to mean 1: the equal-weight fit is the plain least squares)
+    scaled = design * (k_count * w)[..., None]
+    gram = np.einsum("mkp,mkq->mpq", design, scaled)
     regular = np.abs(np.linalg.det(gram)) > 1e-9 * np.einsum("mpp->m", gram) ** 3
     fit = np.empty((len(ids), 3, d.shape[1]))
-    fit[regular] = np.linalg.solve(gram[regular], np.swapaxes(design[regular], 1, 2))
+    fit[regular] = np.linalg.solve(gram[regular], np.swapaxes(scaled[regular], 1, 2))
     fit[~regular] = np.linalg.pinv(design[~regular])                      # (points on a line)
     coef = np.einsum("mpk,mk->mp", fit[inverse], values)
     resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
+    resid = resid * np.sqrt(k_count * w[inverse])
     dof = max(values.shape[1] - 3, 1)
     grad = (coef[:, 1:2] * t1[inverse] + coef[:, 2:3] * t2[inverse]) / size[inverse, None]
     return x0[inverse], coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
@@ -681,7 +696,7 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     interpolation error within GATHER_SHARE tol h. Such a link's share of each patch below
     the receiver is its linear fit at the patch's centroid: no shadow rays below this level.
     Returns (smooth (M,) bool, x0, a, grad, rms) of the fits (``linear_fit``)."""
-    x0, a, grad, rms = linear_fit(nodes, recv, gv.astype(np.float64))
+    x0, a, grad, rms = linear_fit(nodes, recv, gv.astype(np.float64), weighted=True)
     mean = (nodes.recv_w[recv] * gv).sum(axis=1)
     # every point sees the whole source (in front of it, no ray blocked): a field cut by a
     # shadow or by the receiver's horizon is not linear, and points that all missed a
