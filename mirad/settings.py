@@ -120,7 +120,7 @@ class Settings:
         "hierarchical": links at any level between volume clusters, face clusters and
         triangles, exact unoccluded transfers, rays for visibility only (core.py);
         "legacy": links on receiver leaves with Monte Carlo transfers (solver.py), kept for
-        the options and oracles only it has (slower: 31 s against 3.6 s on the furnished
+        the options and oracles only it has (slower: 30-40 s against 4.2 s on the furnished
         room at tolerance 0.05, 2 cores). Shadow
         textures and the ``bf``/``bound`` oracles run on the legacy core (with a warning when
         "hierarchical" was asked for); the options in ``LEGACY_ONLY`` are refused with
