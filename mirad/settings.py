@@ -123,8 +123,8 @@ class Settings:
         the options and oracles only it has (slower: 30-40 s against 4.2 s on the furnished
         room at tolerance 0.05, 2 cores). Shadow
         textures and the ``bf``/``bound`` oracles run on the legacy core (with a warning when
-        "hierarchical" was asked for); the options in ``LEGACY_ONLY`` are refused with
-        "hierarchical" unless left at their defaults.
+        "hierarchical" was asked for), and so take the options in ``LEGACY_ONLY``; any other
+        hierarchical solve refuses those unless they are left at their defaults.
     periodic : str or None, default None
         A periodic ("infinite") canopy: the lateral pattern box "amin,bmin,amax,bmax" (metres,
         the scene file's frame, along the two horizontal axes of ``periodic_up``: x and y for
@@ -202,7 +202,8 @@ class Settings:
         if self.scheduler is not None and (not isinstance(self.scheduler, str) or not self.scheduler.strip()):
             raise SettingsError(f"scheduler={self.scheduler!r} must be a Dask scheduler address such as "
                                 "'tcp://10.0.0.5:8786'")
-        if self.core == "hierarchical":
+        # (shadow textures and the bf/bound oracles solve on the legacy core, which reads them)
+        if self.core == "hierarchical" and not self.shadow_textures and self.oracle == "kernel":
             defaults = {f.name: f.default for f in dataclasses.fields(self)}
             ignored = [f"{name}={getattr(self, name)!r}" for name in LEGACY_ONLY if getattr(self, name) != defaults[name]]
             if ignored:

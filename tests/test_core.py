@@ -678,6 +678,10 @@ def test_options_only_the_legacy_core_reads_are_refused_or_said_on_the_hierarchi
             make_settings(core="hierarchical", **option)
         make_settings(core="legacy", **option)
     make_settings(core="hierarchical", shaft_culling="auto", clustering="auto")
+    # a solve that runs on the legacy core anyway (the bound oracle, shadow textures) takes them:
+    # with the hierarchical core the default, oracle='bound' with an element cap was refused
+    make_settings(oracle="bound", max_elements=5000)
+    make_settings(shadow_textures=True, clustering="on")
     scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
     with pytest.warns(UserWarning, match="oracle='bf' runs on the legacy core only"):
         sol = mirad.solve(scene, tolerance=0.3, oracle="bf", **HIER)

@@ -61,7 +61,7 @@ def sweep(scene, ref, oracle: str, max_seconds: float) -> list[dict]:
         extra = {"max_elements": BOUND_MAX_ELEMENTS} if oracle == "bound" else {}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sol = mirad.solve(scene, tolerance=tol, oracle=oracle, quiet=True, **extra)
+            sol = mirad.solve(scene, tolerance=tol, oracle=oracle, quiet=True, core="legacy", **extra)
         seconds = time.perf_counter() - t
         spent += seconds
         b = sol.triangle_radiosity[:, : ref.radiosity.shape[1]]
@@ -154,7 +154,7 @@ def bound_on_closed_forms() -> str:
     for name, source, exact_f in cases:
         scene = mirad.load_scene(source)
         t = time.perf_counter()
-        sol = mirad.solve(scene, tolerance=0.3, oracle="bound", max_refine_passes=2, quiet=True)
+        sol = mirad.solve(scene, tolerance=0.3, oracle="bound", max_refine_passes=2, quiet=True, core="legacy")
         seconds = time.perf_counter() - t
         b, area = sol.triangle_radiosity[:, 0], sol.triangle_area
         if exact_f is None:

@@ -104,7 +104,8 @@ def reference(scene, spp: int, seed: int):
 def run(scene, ref, mask, tol: float, textures: bool, *, spp: int, seed: int) -> tuple[dict, np.ndarray]:
     """One solve + render; returns (row, image)."""
     t = time.perf_counter()
-    sol = mirad.solve(scene, tolerance=tol, shadow_textures=textures, quiet=True, seed=seed)
+    sol = mirad.solve(scene, tolerance=tol, shadow_textures=textures, quiet=True, seed=seed,
+                      core="legacy")
     seconds = time.perf_counter() - t
     t = time.perf_counter()
     image = np.asarray(mirad.render(scene, sol, spp=spp, smooth=True), np.float64)
@@ -160,7 +161,7 @@ def measure(name: str, args, say) -> dict:
         f"noise floor rel. MSE {floor['relmse']:.2g}, rel. L1 {floor['l1']:.2g}; {mask.mean():.0%} of pixels covered")
     # JIT warm-up: compile the solver, texture and display kernels outside the timings
     for textures in (False, True):
-        warm = mirad.solve(scene, tolerance=tolerances[min(1, len(tolerances) - 1)], shadow_textures=textures,
+        warm = mirad.solve(scene, tolerance=tolerances[min(1, len(tolerances) - 1)], shadow_textures=textures, core="legacy",
                            quiet=True, seed=args.seed)
         mirad.render(scene, warm, spp=1)
     result = {"name": name, "triangles": scene.triangle_count, "ref": ref, "mask": mask, "floor": floor,

@@ -47,7 +47,7 @@ def sweep(name: str, tolerances, samples: int) -> list[dict]:
     for tol in tolerances:
         for textures in (False, True):
             t = time.perf_counter()
-            sol = mirad.solve(scene, tolerance=tol, shadow_textures=textures, quiet=True)
+            sol = mirad.solve(scene, tolerance=tol, shadow_textures=textures, quiet=True, core="legacy")
             seconds = time.perf_counter() - t
             measured = relative_l1(sol.triangle_radiosity[:, :c], ref.radiosity, area=area) * scale
             rows.append({"scene": name, "tolerance": tol, "textures": textures, "seconds": seconds,
