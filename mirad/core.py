@@ -349,14 +349,19 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     state.timing["direct"] += time.perf_counter() - t
 
 
-def direct_of_new_leaves(state: State) -> None:
-    """Direct light of the leaves that have none yet (made by splits): a child keeps its
-    parent's density of points (a quarter of them for a quarter of the area), at least the
-    initial count."""
+def direct_of_new_leaves(state: State, *, share: int = 4) -> None:
+    """Direct light of the leaves that have none yet (made by splits): a child takes its
+    parent's points over ``share`` (4: the parent's density, a quarter of them for a quarter
+    of the area; 1: as many as the parent), at least the initial count.
+
+    At the parent's density the four children's summed error (each leaf's absolute error,
+    as the estimate counts it) is twice the parent's: independent errors no longer cancel
+    inside one leaf. Refinement then resamples where that matters; the final gather's splits
+    come after the last pass, so they take the parent's count (``share=1``) and keep its error."""
     new = state.nodes.leaves
     new = new[state.direct_samples[new] == 0]
     parent = state.nodes.parent[new]
-    from_parent = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // 4, 0)
+    from_parent = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // share, 0)
     count = np.maximum(from_parent, min(state.settings.samples_per_link, MAX_DIRECT_SAMPLES))
     for samples in np.unique(count):
         direct(state, new[count == samples], int(samples))
@@ -1137,7 +1142,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         ids = np.unique(pair_node[over])
         n_before = len(nodes)
         _split_leaves(state, ids)
-        direct_of_new_leaves(state)
+        direct_of_new_leaves(state, share=1)
         h_node = np.concatenate([h_node, h_node[nodes.parent[n_before:]]])
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
@@ -1449,6 +1454,12 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
         warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
                       f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
                       "tolerance or max_links", stacklevel=3)
+    elif est.relative > settings.tolerance and history and history[-1] <= settings.tolerance:
+        # the passes met the tolerance; the gather's own noise and fits, on the leaves, did not
+        warnings.warn(f"refinement met the tolerance {settings.tolerance} after {passes} passes (estimate "
+                      f"{history[-1]:.4f}), but the output's estimate after the final gather is {est.relative:.4f}, "
+                      "above the tolerance (the gather's own visibility noise, fits and split leaves); a lower tolerance "
+                      "refines further before the gather", stacklevel=3)
     elif est.relative > settings.tolerance:
         warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
                       f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
