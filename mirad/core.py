@@ -349,19 +349,14 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     state.timing["direct"] += time.perf_counter() - t
 
 
-def direct_of_new_leaves(state: State, *, share: int = 4) -> None:
-    """Direct light of the leaves that have none yet (made by splits): a child takes its
-    parent's points over ``share`` (4: the parent's density, a quarter of them for a quarter
-    of the area; 1: as many as the parent), at least the initial count.
-
-    At the parent's density the four children's summed error (each leaf's absolute error,
-    as the estimate counts it) is twice the parent's: independent errors no longer cancel
-    inside one leaf. Refinement then resamples where that matters; the final gather's splits
-    come after the last pass, so they take the parent's count (``share=1``) and keep its error."""
+def direct_of_new_leaves(state: State) -> None:
+    """Direct light of the leaves that have none yet (made by splits): a child keeps its
+    parent's density of points (a quarter of them for a quarter of the area), at least the
+    initial count."""
     new = state.nodes.leaves
     new = new[state.direct_samples[new] == 0]
     parent = state.nodes.parent[new]
-    from_parent = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // share, 0)
+    from_parent = np.where(parent >= 0, state.direct_samples[np.maximum(parent, 0)] // 4, 0)
     count = np.maximum(from_parent, min(state.settings.samples_per_link, MAX_DIRECT_SAMPLES))
     for samples in np.unique(count):
         direct(state, new[count == samples], int(samples))
@@ -369,6 +364,38 @@ def direct_of_new_leaves(state: State, *, share: int = 4) -> None:
         # (a periodic canopy's far field, added to the direct light: a child takes its parent's)
         state.far = inherited(state, state.far, np.arange(len(state.nodes)))
         state.direct[new] += state.far[new]
+
+
+def resample_split_direct(state: State, ids: np.ndarray, budget: float) -> None:
+    """More sun and sky points on nodes ids (new leaves the final gather split), four times at
+    a time up to their parent's count, the noisiest first, until the direct light's summed
+    error over all leaves (W) is within ``budget`` (what it was before the splits, or its
+    share of the tolerance) or no new leaf can take more.
+
+    A child starts at its parent's density, a quarter of the points for a quarter of the
+    area; the four children's summed error (each leaf's absolute error, as the estimate
+    counts it) is then twice the parent's, and these splits come after the last pass that
+    could resample them: a 1,000-leaf canopy asked for 0.02 ended at 2.17 % (its direct
+    light's share 0.66 % before the gather, 2.09 % after), and at 1.73 % for 0.01."""
+    nodes = state.nodes
+    ids = ids[nodes.children[ids, 0] < 0]
+    if not state.scene.light_emitters or not len(ids):
+        return
+    cap = state.direct_samples[np.maximum(nodes.parent[ids], 0)]
+    while True:
+        leaves = nodes.leaves
+        total = float(direct_power_errors(state, leaves).sum())
+        error = direct_power_errors(state, ids)
+        room = state.direct_samples[ids] < cap
+        if total <= budget or not room.any():
+            return
+        # four times the points halve a leaf's error: take the largest until the sum fits
+        order = np.flatnonzero(room)[np.argsort(-error[room])]
+        saved = np.cumsum(0.5 * error[order])
+        todo = ids[order[: int(np.searchsorted(saved, total - budget)) + 1]]
+        want = np.minimum(4 * state.direct_samples[todo], cap[np.searchsorted(ids, todo)])
+        for samples in np.unique(want):
+            direct(state, todo[want == samples], int(samples))
 
 
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
@@ -1127,6 +1154,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
     h_node = h_node.copy()
+    # (what the passes left the direct light's summed error, W, or its share of the budget if
+    # more: the splits below are not to raise it; see resample_split_direct)
+    direct_budget = max(DIRECT_SHARE * tol * reference_mean(state, solved) * state.total_area,
+                        float(direct_power_errors(state, nodes.leaves).sum()) if state.scene.light_emitters else 0.0)
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     # (as with the source splits, a pair kept once stays kept: each round looks only at the
     # pairs the last one made, on the leaves it made)
@@ -1142,7 +1173,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         ids = np.unique(pair_node[over])
         n_before = len(nodes)
         _split_leaves(state, ids)
-        direct_of_new_leaves(state, share=1)
+        direct_of_new_leaves(state)
+        resample_split_direct(state, np.arange(n_before, len(nodes)), direct_budget)
         h_node = np.concatenate([h_node, h_node[nodes.parent[n_before:]]])
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
