@@ -382,18 +382,20 @@ def resample_split_direct(state: State, ids: np.ndarray, budget: float) -> None:
     if not state.scene.light_emitters or not len(ids):
         return
     cap = state.direct_samples[np.maximum(nodes.parent[ids], 0)]
+    # (only ids change below: the other leaves' summed error is taken once)
+    others = float(direct_power_errors(state, nodes.leaves).sum() - direct_power_errors(state, ids).sum())
     while True:
-        leaves = nodes.leaves
-        total = float(direct_power_errors(state, leaves).sum())
         error = direct_power_errors(state, ids)
+        total = others + float(error.sum())
         room = state.direct_samples[ids] < cap
         if total <= budget or not room.any():
             return
         # four times the points halve a leaf's error: take the largest until the sum fits
         order = np.flatnonzero(room)[np.argsort(-error[room])]
         saved = np.cumsum(0.5 * error[order])
-        todo = ids[order[: int(np.searchsorted(saved, total - budget)) + 1]]
-        want = np.minimum(4 * state.direct_samples[todo], cap[np.searchsorted(ids, todo)])
+        pick = order[: int(np.searchsorted(saved, total - budget)) + 1]
+        todo = ids[pick]
+        want = np.minimum(4 * state.direct_samples[todo], cap[pick])
         for samples in np.unique(want):
             direct(state, todo[want == samples], int(samples))
 
@@ -1157,7 +1159,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (what the passes left the direct light's summed error, W, or its share of the budget if
     # more: the splits below are not to raise it; see resample_split_direct)
     direct_budget = max(DIRECT_SHARE * tol * reference_mean(state, solved) * state.total_area,
-                        float(direct_power_errors(state, nodes.leaves).sum()) if state.scene.light_emitters else 0.0)
+                        float(direct_power_errors(state, nodes.leaves).sum()))
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     # (as with the source splits, a pair kept once stays kept: each round looks only at the
     # pairs the last one made, on the leaves it made)
@@ -1495,11 +1497,12 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     elif est.relative > settings.tolerance:
         warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
                       f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
-    return _solution(state, solved, gathered, est, passes, (iterations, iterations_max), capped, t_start, history)
+    return _solution(state, solved, gathered, est, passes, iterations, iterations_max, capped, t_start, history)
 
 
-def _solution(state, solved, gathered, est, passes, iterations, capped, t_start, history):
-    """The Solution and its stats; ``iterations``: (summed, most in one solve) over the passes."""
+def _solution(state, solved, gathered, est, passes, iterations, iterations_max, capped, t_start, history):
+    """The Solution and its stats; ``iterations``: summed over the passes' solves,
+    ``iterations_max``: the most one of them took."""
     from .solution import Solution
 
     scene, settings, nodes = state.scene, state.settings, state.nodes
@@ -1538,8 +1541,8 @@ def _solution(state, solved, gathered, est, passes, iterations, capped, t_start,
                                "links": int(len(state.links))},
         "solver": settings.solver,
         # (summed over the passes' warm-started solves and the gather's; the most one solve took)
-        "solver_iterations": int(iterations[0] + gathered.iterations),
-        "solver_iterations_max": int(max(iterations[1], gathered.iterations_max)),
+        "solver_iterations": int(iterations + gathered.iterations),
+        "solver_iterations_max": int(max(iterations_max, gathered.iterations_max)),
         "gather_pairs": int(gathered.pairs),
         "solver_residual": float(solved.residual),
         "refine_passes": int(passes),

@@ -18,6 +18,7 @@ import io
 import os
 import signal
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,6 @@ def raise_on_sigterm():
     it installed nothing (called outside the main thread, which may not set handlers)."""
     def handler(signum, frame):
         raise Terminated(signum)
-
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         return None

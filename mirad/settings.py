@@ -203,7 +203,7 @@ class Settings:
             raise SettingsError(f"scheduler={self.scheduler!r} must be a Dask scheduler address such as "
                                 "'tcp://10.0.0.5:8786'")
         # (shadow textures and the bf/bound oracles solve on the legacy core, which reads them)
-        if self.core == "hierarchical" and not self.shadow_textures and self.oracle == "kernel":
+        if self.core == "hierarchical" and self.legacy_feature() is None:
             defaults = {f.name: f.default for f in dataclasses.fields(self)}
             ignored = [f"{name}={getattr(self, name)!r}" for name in LEGACY_ONLY if getattr(self, name) != defaults[name]]
             if ignored:
@@ -240,6 +240,15 @@ class Settings:
                     raise SettingsError(f"{f.name}={value!r} must be finite, e.g. {f.name}={f.default!r}")
                 if kind.startswith("int") and float(value) != int(value):
                     raise SettingsError(f"{f.name}={value!r} must be an integer, e.g. {f.name}={f.default!r}")
+
+    def legacy_feature(self) -> str | None:
+        """The asked-for feature only the legacy core has ("shadow_textures=True" or
+        "oracle='bf'"/"oracle='bound'"), which makes a hierarchical solve run there; None if none."""
+        if self.shadow_textures:
+            return "shadow_textures=True"
+        if self.oracle != "kernel":
+            return f"oracle={self.oracle!r}"
+        return None
 
     def replace(self, **changes) -> "Settings":
         """Copy with some fields changed (validated again)."""

@@ -336,8 +336,8 @@ def uses_hierarchical_core(settings: Settings) -> bool:
     either core's waves."""
     if settings.core != "hierarchical":
         return False
-    if settings.shadow_textures or settings.oracle != "kernel":
-        what = "shadow_textures=True" if settings.shadow_textures else f"oracle={settings.oracle!r}"
+    what = settings.legacy_feature()
+    if what is not None:
         warnings.warn(f"{what} runs on the legacy core only: this solve uses core='legacy' (leave it out to "
                       "solve on the hierarchical core)", stacklevel=3)
         return False
