@@ -759,6 +759,16 @@ def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
     return (GATHER_SHARE * tolerance) ** 2 * np.maximum(h_recv * ff * b_src, 0.0)
 
 
+def direct_node_irradiance(state: State, below: sp.csr_matrix, leaves: np.ndarray) -> np.ndarray:
+    """(N,) W/m^2: the brightest channel of the point/spot/sun/sky light (``direct``) on every
+    node, the area mean over leaves (L,) below it (``below``: (N, L) 0/1)."""
+    if not state.scene.light_emitters:
+        return np.zeros(below.shape[0])
+    area = state.nodes.area[leaves]
+    power = below @ (area * channel_max(state.direct[leaves]))
+    return power / np.maximum(below @ area, 1e-300)
+
+
 def output_share(state: State, ids: np.ndarray) -> np.ndarray:
     """(M,) the share of its input triangle's area that each triangle node ids is: the
     output is per input triangle, the mean over its leaves, so independent errors of the
@@ -1053,9 +1063,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     position = np.full(n, -1, np.int64)
     position[leaves] = np.arange(n_leaf)
     inner = nodes.children[:, 0] >= 0
-    # every node's irradiance from its own links and its ancestors' (brightest channel)
+    # every node's whole irradiance (brightest channel): from its own links and its
+    # ancestors', and the point/spot/sun/sky light on the leaves below it (their area mean).
+    # The tolerance is relative to all the light a receiver gets: an allowance taken over its
+    # links' share alone held a sunlit leaf's gather to a fraction of it
     b_src = channel_max(solved.b_node)
-    h_node = ancestor_matrix(nodes, np.arange(n)) @ (links.matrix(n) @ b_src)
+    h_node = ancestor_matrix(nodes, np.arange(n)) @ (links.matrix(n) @ b_src) + \
+        direct_node_irradiance(state, below, leaves)
     on_inner = np.flatnonzero(inner[links.recv])
     # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
     # gather's noise is), the others one
