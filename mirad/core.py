@@ -24,6 +24,7 @@ then the system is solved again, until the estimate meets the tolerance.
 
 from __future__ import annotations
 
+import fnmatch
 import time
 import warnings
 from dataclasses import dataclass, replace
@@ -39,7 +40,8 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
                      refinement_threshold, unresolved, volume_transfer_std)
 from .scene import Scene
-from .settings import Settings
+from .errors import SettingsError
+from .settings import Settings, shape_patterns
 from .transfer import NodeBuffers, buried_fraction, evaluate, point_to_polygon_dr, reverse_form_factor
 from .arrays import RAY_OFFSET, channel_max, to_vector3
 from .far_field import far_field, periodic_stats
@@ -85,6 +87,9 @@ class State:
     patch_rho: np.ndarray          # (P, C) reflectance of every patch
     patch_emission: np.ndarray     # (P, C) emitted radiosity, W/m^2
     total_area: float              # m^2, all patches
+    counted: np.ndarray            # (P,) bool: patches of the shapes the tolerance is over (Settings.error_shapes)
+    counted_area: float            # m^2, their area: the estimate is relative to their light
+    order: np.ndarray              # (P,) patches in tree order (a cluster's patches: order[lo:hi])
     min_area: float                # m^2, smallest triangle a split may make
     offset: float                  # m, ray ends lifted off surfaces
     links: Links
@@ -99,6 +104,7 @@ class State:
     waves: int = 0
     periodic: object | None = None            # periodic.PeriodicBox of a periodic canopy, or None
     far: np.ndarray | None = None             # (N, C) W/m^2: its far field's irradiance (far_field.far_field)
+    weight: np.ndarray | None = None          # (N,) output_weight of every node, set by source_state
 
     def __post_init__(self) -> None:
         self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
@@ -134,17 +140,85 @@ def build(scene: Scene, settings: Settings) -> State:
     t = time.perf_counter()
     channels = 1 if scene.grey else scene.channels
     surf = _surface(scene, channels, settings.seed)
-    nodes, _, root = build_nodes(surf)
+    nodes, order, root = build_nodes(surf)
     total = float(nodes.area[: len(surf.verts)].sum())
+    counted = counted_patches(scene, settings)
     tol = settings.tolerance
     state = State(scene=scene, settings=settings, channels=channels, surface=surf, nodes=nodes, root=root,
                   patch_rho=scene.patch_rho[:, :channels], patch_emission=scene.patch_emission[:, :channels],
-                  total_area=total,
+                  total_area=total, counted=counted,
+                  counted_area=total if counted.all() else float(nodes.area[: len(surf.verts)][counted].sum()),
+                  order=order,
                   min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
                   offset=RAY_OFFSET * scene.diagonal, links=Links(), periodic=box_for(scene, settings))
     _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
     state.timing["build"] += time.perf_counter() - t
     return state
+
+
+def counted_patches(scene: Scene, settings: Settings) -> np.ndarray:
+    """(P,) bool: the patches on the shapes ``Settings.error_shapes`` names (every patch
+    without it). A pattern that matches no shape is refused, naming the scene's shapes."""
+    shape = scene.tri_shape[scene.patch_tri]
+    if settings.error_shapes is None:
+        return np.ones(len(shape), bool)
+    ids = [str(i) for i in scene.shape_ids]
+    chosen = np.zeros(len(ids), bool)
+    for pattern in shape_patterns(settings.error_shapes):
+        hit = np.array([fnmatch.fnmatchcase(i, pattern) for i in ids], bool)
+        if not hit.any():
+            listed = ", ".join(ids[:12]) + (f" and {len(ids) - 12} more" if len(ids) > 12 else "")
+            raise SettingsError(f"error_shapes: {pattern!r} matches none of the scene's shapes ({listed}); "
+                                "give their ids or patterns such as 'plant-*'")
+        chosen |= hit
+    return chosen[shape]
+
+
+def counted_nodes(state: State, ids: np.ndarray) -> np.ndarray:
+    """(M,) bool: nodes ids on the shapes the tolerance is over (a cluster: its first patch's
+    shape; a planar group, and so every face cluster, is one shape's)."""
+    nodes = state.nodes
+    patch = nodes.patch[ids]
+    first = state.order[np.clip(nodes.lo[ids], 0, len(state.order) - 1)]
+    return state.counted[np.where(patch >= 0, patch, first)]
+
+
+def output_weight(state: State, ids: np.ndarray) -> np.ndarray:
+    """(M,) what an error in the light of nodes ids weighs in the estimate: 1 on the shapes the
+    tolerance is over (``Settings.error_shapes``; all of them without it), elsewhere the share
+    of it that reaches those shapes (``output_weights``, set by ``source_state``; a node made
+    since takes its parent's)."""
+    if state.counted.all():
+        return np.ones(len(ids))
+    ids = np.asarray(ids, np.int64)
+    if state.weight is None:            # (before the first solve: all of it, conservatively)
+        return np.where(counted_nodes(state, ids), 1.0, state.nodes.rho_max[ids].astype(np.float64))
+    node = ids.copy()
+    while (node >= len(state.weight)).any():
+        new = node >= len(state.weight)
+        node[new] = state.nodes.parent[node[new]]
+    return state.weight[node]
+
+
+def output_weights(state: State, solved: "Solved", gain: float) -> np.ndarray:
+    """(N,) ``output_weight`` of every node for a solution: 1 on the counted shapes; on the others
+    an error in a node's irradiance is an error rho e in the light it sends, of which the share
+    ``reach`` arrives on counted receivers directly (its links', and its ancestors' links' by
+    its share of their area: A_r F / A_src summed over them), and with every later bounce
+    (``gain - 1`` times the first, ``amplification``) the share the scene's reflected light
+    reaches them on the whole (its power-weighted mean reach):
+    rho (reach + (gain - 1) mean_reach), at most rho gain."""
+    nodes, links, leaves = state.nodes, state.links, solved.leaves
+    counted = counted_nodes(state, np.arange(len(nodes)))
+    r, s = links.recv, links.src
+    sent = nodes.area[r] * links.ff * counted[r] / np.maximum(nodes.area[s], 1e-300)
+    per_source = np.bincount(s, weights=sent, minlength=len(nodes))
+    reach_leaf = ancestor_matrix(nodes, leaves) @ per_source
+    reflected = nodes.area[leaves] * channel_max(solved.system.rho) * channel_max(solved.b_leaf)
+    mean_reach = float((reflected * reach_leaf).sum() / max(reflected.sum(), 1e-300))
+    reach = solved.system.pull @ reach_leaf
+    rho = nodes.rho_max.astype(np.float64)
+    return np.where(counted, 1.0, rho * np.minimum(reach + (gain - 1.0) * mean_reach, gain))
 
 
 def _buffers(state: State) -> NodeBuffers:
@@ -410,7 +484,7 @@ def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     # a point or spot light's feature smaller than one of the samples' strata may be missed
     # altogether (zero variance, zero estimate): at most the leaf's bound over the strata
     missed = weight * state.direct_bound[leaves] / np.maximum(state.direct_samples[leaves], 1)
-    return state.nodes.area[leaves] * np.maximum(sampled, missed)
+    return state.nodes.area[leaves] * np.maximum(sampled, missed) * output_weight(state, leaves)
 
 
 def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
@@ -1172,7 +1246,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     h_node = h_node.copy()
     # (what the passes left the direct light's summed error, W, or its share of the budget if
     # more: the splits below are not to raise it; see resample_split_direct)
-    direct_budget = max(DIRECT_SHARE * tol * reference_mean(state, solved) * state.total_area,
+    direct_budget = max(DIRECT_SHARE * tol * reference_mean(state, solved) * state.counted_area,
                         float(direct_power_errors(state, nodes.leaves).sum()))
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     # (as with the source splits, a pair kept once stays kept: each round looks only at the
@@ -1305,7 +1379,10 @@ def source_state(state: State, solved: Solved) -> SourceState:
     # an error in what a face cluster sends reaches the output after interreflection (and,
     # for the reflected radiosity, one more reflection)
     propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * amplification(state, solved)
-    source = SourceState(channel_max(b_node), below, dev, propagation)
+    if not state.counted.all():
+        state.weight = output_weights(state, solved, amplification(state, solved))
+    source = SourceState(channel_max(b_node), below, dev, propagation,
+                         output_weight=output_weight(state, np.arange(n)))
     # face clusters' mean errors are sampling errors of unbiased estimates: summed per
     # receiver (its points are shared by its links), in quadrature over receivers
     raw = face_mean_errors(state.nodes, links, source, weighted=False)
@@ -1362,6 +1439,9 @@ def reference_mean(state: State, solved: Solved) -> float:
     leaves = solved.leaves
     h = solved.system.gather(solved.b_leaf) + state.direct[leaves]
     area = state.nodes.area[leaves]
+    if not state.counted.all():          # (over the shapes the tolerance is measured over)
+        keep = counted_nodes(state, leaves)
+        h, area = h[keep], area[keep]
     mean = float((area[:, None] * np.maximum(h, 0.0)).sum() / max(area.sum() * h.shape[1], 1e-300))
     return mean if mean > 0 else 1e-300
 
@@ -1390,7 +1470,7 @@ def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
     mean = reference_mean(state, solved)
     total = float(np.sum(receiver + src)) + float(d.sum())
     state.timing["estimate"] += time.perf_counter() - t
-    return Estimate(receiver, src, d, total / max(state.total_area * mean, 1e-300), mean,
+    return Estimate(receiver, src, d, total / max(state.counted_area * mean, 1e-300), mean,
                     reflected_mean(state, solved))
 
 
@@ -1408,10 +1488,12 @@ def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate
     # (the gather may have split leaves: their direct light is their own)
     direct = direct_power_errors(state, gathered.leaves) if state.scene.light_emitters else \
         np.zeros(len(gathered.leaves))
-    total = float(receiver.sum() + source.sum() + direct.sum() + gathered.noise_power.sum() +
-                  gathered.source_power.sum())
+    # (the gather's noise and source terms weigh as the leaves' other errors, ``output_weight``)
+    weight = output_weight(state, gathered.leaves)
+    total = float(receiver.sum() + source.sum() + direct.sum() + (weight * gathered.noise_power).sum() +
+                  (weight * gathered.source_power).sum())
     return replace(est, receiver=receiver, source=source, direct=direct,
-                   relative=total / max(state.total_area * est.reference_mean, 1e-300))
+                   relative=total / max(state.counted_area * est.reference_mean, 1e-300))
 
 
 # ------------------------------------------------------------------------------------------
@@ -1461,14 +1543,14 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
             bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
             if est.relative <= settings.tolerance or capped or passes >= max_passes:
                 break
-            budget = settings.tolerance * state.total_area * est.reference_mean
+            budget = settings.tolerance * state.counted_area * est.reference_mean
             eps = refinement_threshold(np.concatenate([est.link_errors, est.direct]), budget)
             leaves = state.nodes.leaves
             resampled = False
             # more points (or smaller leaves) for the direct light only while its error holds
             # more than DIRECT_SHARE of the estimate: otherwise the passes that the links still
             # need would each quadruple the points of every leaf over eps, for nothing
-            if float(est.direct.sum()) > DIRECT_SHARE * est.relative * state.total_area * est.reference_mean:
+            if float(est.direct.sum()) > DIRECT_SHARE * est.relative * state.counted_area * est.reference_mean:
                 resampled = resample_direct(state, leaves, eps)
                 resampled |= split_direct(state, leaves, eps)
             # one wave per pass: the children's errors are judged after the next solve, from
@@ -1527,7 +1609,7 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
     b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0) + buried_emission
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
     err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
-        (est.direct + gathered.noise_power + gathered.source_power) / nodes.area[leaves]
+        (est.direct + output_weight(state, leaves) * (gathered.noise_power + gathered.source_power)) / nodes.area[leaves]
     if ERRORS_OF == "irradiance":      # (an irradiance error; the map is of the radiosity)
         err_leaf = err_leaf * system.rho.max(axis=1)
     area_leaf = nodes.area[leaves]
@@ -1576,6 +1658,9 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
         # a leaf BSDF's diffuse transmission is carried to the other side (``transmission``)
         "leaf_transmission": "carried" if scene.diffuse_transmission else "none",
         "periodic": periodic_stats(state),
+        # the shapes the estimate is over (Settings.error_shapes), None: all
+        "error_shapes": None if state.counted.all() else
+        sorted({str(scene.shape_ids[k]) for k in np.unique(scene.tri_shape[scene.patch_tri[state.counted]])}),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]

@@ -160,7 +160,7 @@ def far_field(state, solved, solve, reference_mean):
     total = np.bincount(leaf_patch, weights=area, minlength=n_patch)
     mean = sp.csr_matrix((area / np.maximum(total[leaf_patch], 1e-300), (leaf_patch, np.arange(n_leaf))),
                          shape=(n_patch, n_leaf))
-    budget = FAR_SHARE * state.settings.tolerance * state.total_area * reference_mean(state, solved)
+    budget = FAR_SHARE * state.settings.tolerance * state.counted_area * reference_mean(state, solved)
     allowed = budget * area / max(float(area.sum()), 1e-300)
 
     def noise_of(hits_by_count, b_patch):
@@ -207,7 +207,7 @@ def far_field(state, solved, solve, reference_mean):
                        "most_rays_per_leaf": int(max(c for c, (r, _) in hits.items() if len(r))),
                        "hit_share": float(gather.sum() / n_leaf),
                        "irradiance": float((far * area).sum() / max(float(area.sum()), 1e-300)),
-                       "estimated_noise": float(noise.sum() / max(state.total_area * reference_mean(state, solved),
+                       "estimated_noise": float(noise.sum() / max(state.counted_area * reference_mean(state, solved),
                                                                   1e-300))}
     return solved, noise
 

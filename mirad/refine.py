@@ -268,6 +268,9 @@ class SourceState:
     dev: np.ndarray
     propagation: float = 1.0
     mean_weight: np.ndarray | None = None
+    #: (N,) what an error in each node's light weighs in the estimate (core.output_weight), or
+    #: None: 1 everywhere
+    output_weight: np.ndarray | None = None
 
     def grow(self, nodes: Nodes) -> "SourceState":
         """Children made since: their parent's values (deviation halved) until the next solve."""
@@ -275,11 +278,16 @@ class SourceState:
         if len(nodes) == n_old:
             return self
         par = nodes.parent[n_old:]
-        return SourceState(np.concatenate([self.b_max, self.b_max[par]]),
-                           np.concatenate([self.b_max_below, self.b_max_below[par]]),
-                           np.concatenate([self.dev, 0.5 * self.dev[par]]), self.propagation,
-                           None if self.mean_weight is None else np.concatenate([self.mean_weight,
-                                                                                 self.mean_weight[par]]))
+
+        def grown(a):
+            return None if a is None else np.concatenate([a, a[par]])
+
+        return SourceState(grown(self.b_max), grown(self.b_max_below), np.concatenate([self.dev, 0.5 * self.dev[par]]),
+                           self.propagation, grown(self.mean_weight), grown(self.output_weight))
+
+    def weight(self, ids: np.ndarray) -> np.ndarray:
+        """(M,) ``output_weight`` of nodes ids (ones without it)."""
+        return np.ones(len(ids)) if self.output_weight is None else self.output_weight[ids]
 
 
 def receiver_weight(nodes: Nodes, recv: np.ndarray) -> np.ndarray:
@@ -305,7 +313,7 @@ def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted
     e = nodes.area[r] * state.b_max[s] * links.err_ff
     face = nodes.kind[r] == FACE
     # (a face cluster's mean error is sent on as radiosity: rho_r times it, amplified)
-    e = np.where(face, state.propagation * nodes.rho_max[r] * e, receiver_weight(nodes, r) * e)
+    e = np.where(face, state.propagation * nodes.rho_max[r] * e, receiver_weight(nodes, r) * state.weight(r) * e)
     if weighted and state.mean_weight is not None:
         e = np.where(face, e * state.mean_weight[r], e)
     return e
@@ -314,7 +322,9 @@ def face_mean_errors(nodes: Nodes, links: Links, state: SourceState, *, weighted
 def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.ndarray, np.ndarray]:
     """(receiver term, source term) of every link, W (see module docstring)."""
     r, s = links.recv, links.src
-    scale = nodes.area[r] * receiver_weight(nodes, r)
+    # (a face cluster's mean error above is sent on as light whatever its shape; the terms
+    # below are the receiver's own, weighted as its shape is in the estimate)
+    scale = nodes.area[r] * receiver_weight(nodes, r) * state.weight(r)
     # a face cluster's own triangles get their light from the final gather (core.py): an
     # error in the cluster's mean reaches the output only once reflected again elsewhere
     receiver = scale * state.b_max[s] * EXPECTED_ABS * links.vis_std + face_mean_errors(nodes, links, state)

@@ -134,6 +134,15 @@ class Settings:
     periodic_up : str, default "+z"
         The scene's up axis for ``periodic`` (+z, -z, +y, -y, +x or -x); the box spans the
         two other axes.
+    error_shapes : str or None, default None
+        The shapes the tolerance is measured over: comma-separated shape ids or shell-style
+        patterns ("plant-*,stem"; the API also takes a list). The estimate is then relative to
+        their light alone (their area times their mean irradiance) and counts the other
+        shapes' errors only as far as they can reach them: as reflected light (their
+        reflectance times the solution's interreflection gain). A canopy on a large ground
+        asked for ``error_shapes="plant-*"`` gets per-leaf accuracy, where over every shape
+        the ground's area dilutes the leaves' error. Every pattern must match a shape;
+        hierarchical core only. None: every shape.
     """
 
     tolerance: float = 0.03
@@ -160,8 +169,11 @@ class Settings:
     core: str = "hierarchical"
     periodic: str | None = None
     periodic_up: str = "+z"
+    error_shapes: str | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.error_shapes, (list, tuple)) and all(isinstance(x, str) for x in self.error_shapes):
+            object.__setattr__(self, "error_shapes", ",".join(self.error_shapes))
         self._check_types()
         if not (0.0 < float(self.tolerance) < 1.0):
             raise SettingsError(
@@ -219,6 +231,14 @@ class Settings:
         elif not isinstance(self.periodic_up, str) or self.periodic_up.strip().lower() not in (
                 "+z", "-z", "+y", "-y", "+x", "-x", "x", "y", "z"):
             raise SettingsError(f"periodic_up={self.periodic_up!r} is not an axis; give one of +z, -z, +y, -y, +x, -x")
+        if self.error_shapes is not None:
+            if not isinstance(self.error_shapes, str) or not shape_patterns(self.error_shapes):
+                raise SettingsError(f"error_shapes={self.error_shapes!r} names no shape; give shape ids or patterns, "
+                                    "comma-separated (e.g. 'plant-*,stem'), or leave it out for every shape")
+            if self.core != "hierarchical" or self.legacy_feature() is not None:
+                feature = self.legacy_feature() or "core='legacy'"
+                raise SettingsError(f"error_shapes={self.error_shapes!r} runs on the hierarchical core only, and "
+                                    f"{feature} solves on the legacy core; leave one of them out")
         if int(self.seed) != self.seed or self.seed < 0:
             raise SettingsError(f"seed={self.seed!r} must be a non-negative integer")
 
@@ -253,6 +273,11 @@ class Settings:
     def replace(self, **changes) -> "Settings":
         """Copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+
+def shape_patterns(text: str) -> list[str]:
+    """The non-empty shape ids or patterns of a comma-separated ``error_shapes``."""
+    return [p.strip() for p in text.split(",") if p.strip()]
 
 
 def annotation_text(annotation) -> str:

@@ -94,7 +94,11 @@ def test_zero_area_triangles_are_dropped_and_counted():
 
 @pytest.mark.parametrize("options, word", [({"tolerance": 0}, "tolerance"), ({"tolerance": 1.5}, "tolerance"),
                                            ({"samples_per_link": 0}, "samples_per_link"),
-                                           ({"tolerence": 0.1}, "tolerence")])
+                                           ({"tolerence": 0.1}, "tolerence"),
+                                           ({"error_shapes": " , "}, "error_shapes=' , ' names no shape"),
+                                           ({"error_shapes": "wall-*"}, r"'wall-\*' matches none.*floor.*small-box"),
+                                           ({"error_shapes": "floor", "core": "legacy"},
+                                            "error_shapes='floor' runs on the hierarchical core only")])
 def test_bad_settings_name_the_parameter(options, word):
     with pytest.raises(mirad.SettingsError, match=word):
         mirad.solve(CORNELL, **options)
@@ -172,6 +176,16 @@ def test_bad_cli_options_name_the_parameter_and_write_nothing(tmp_path, capsys, 
     assert main(["solve", str(CORNELL), "-o", str(out), "--quiet", *option]) == 2
     err = capsys.readouterr().err
     assert word in err and ("(0, 1)" in err or ">= 1" in err) and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_error_shapes_that_match_nothing_are_refused_by_the_cli(tmp_path, capsys):
+    from mirad.cli import main
+
+    out = tmp_path / "out.ply"
+    assert main(["solve", str(CORNELL), "-o", str(out), "--quiet", "--error-shapes", "floor,tabel"]) == 2
+    err = capsys.readouterr().err
+    assert "'tabel' matches none" in err and "large-box" in err and "Traceback" not in err
     assert not out.exists()
 
 
