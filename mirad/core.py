@@ -1110,6 +1110,28 @@ def _leaves_below(below: sp.csr_matrix, leaves: np.ndarray, ids: np.ndarray) -> 
     return leaves[position], owner
 
 
+def overhangs(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) bool: face-cluster sources src whose rectangle only bounds their triangles (fill < 1)
+    and lies nearer to receivers recv than its size: there the overhang may be the part
+    nearest to the receiver, light the cluster does not send."""
+    return (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src) <= 2.0 * nodes.radius[src]) & \
+        (nodes.kind[src] == FACE)
+
+
+def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
+    """Pairs recv <- src (M,) with ``rays`` per point, their overhanging sources (``overhangs``)
+    replaced by their children, down to sources that fit or to triangles: geometry, known
+    before any ray, so no pair is evaluated only to be split."""
+    done = [(recv[:0], src[:0], rays[:0])]
+    while len(recv):
+        split = overhangs(nodes, recv, src) & (nodes.children[src, 0] >= 0)
+        done.append((recv[~split], src[~split], rays[~split]))
+        kids = nodes.children[src[split]]
+        own, slot = np.nonzero(kids >= 0)
+        recv, src, rays = recv[split][own], kids[own, slot].astype(np.int64), rays[split][own]
+    return tuple(np.concatenate([d[i] for d in done]) for i in range(3))
+
+
 def final_gather(state: State, solved: Solved) -> Gathered:
     """Stage gather: the light of links on inner nodes (face clusters, and triangles split
     for other links' sake), gathered again on each leaf from the sources' solved radiosity.
@@ -1191,6 +1213,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own]
     pair_node, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
+    # (a source that overhangs its triangles near the receiver is split below whatever its rays
+    # say: it descends first, and only the sources that fit are evaluated)
+    pair_node, pair_src, pair_rays = overhang_descent(nodes, pair_node, pair_src, pair_rays)
     g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     seconds_in_waves += seconds
     # pairs whose few rays disagreed more than their share of the tolerance allows are
@@ -1216,9 +1241,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
-        dist = distance_to_source(nodes, pair_node, pair_src)
-        overhang = (nodes.fill[pair_src] < 1.0 - 1e-6) & (dist <= 2.0 * nodes.radius[pair_src]) & \
-            (nodes.kind[pair_src] == FACE)
+        overhang = overhangs(nodes, pair_node, pair_src)
         # a source whose children differ, as seen across it from the leaf (refine.power_errors'
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2

@@ -792,3 +792,27 @@ def test_the_tolerance_over_some_shapes_holds_on_them_and_the_estimate_says_so()
     assert every.stats["error_shapes"] is None
     np.testing.assert_array_equal(every.triangle_radiosity, plain.triangle_radiosity)
     assert every.stats["estimated_error"] == plain.stats["estimated_error"]
+
+
+def test_the_gather_evaluates_no_pair_only_to_split_its_source(monkeypatch):
+    """A face-cluster source whose rectangle overhangs its triangles near the receiver is split
+    by the final gather whatever its rays say (``core.overhangs``): such pairs descend to
+    sources that fit before any is evaluated (``core.overhang_descent``; the furnished room at
+    tolerance 0.05 traced 29.7 M rays, now 24.1 M, at 0.84 -> 0.82 % L1)."""
+    first = []
+    original = core._evaluate_pairs
+
+    def spy(state, solved, patch, src, rays):
+        if not first:
+            first.append((state.nodes, patch.copy(), src.copy()))
+        return original(state, solved, patch, src, rays)
+
+    monkeypatch.setattr(core, "_evaluate_pairs", spy)
+    mirad.solve(SCENES / "furnished-room" / "scene.xml", tolerance=0.2, **HIER)
+    nodes, patch, src = first[0]
+    assert len(patch)
+    fits = ~(core.overhangs(nodes, patch, src) & (nodes.children[src, 0] >= 0))
+    assert fits.all()
+    # and the descent keeps the pairs whose sources fit as they were
+    kept, kept_src, _ = core.overhang_descent(nodes, patch, src, np.ones(len(patch), np.int64))
+    assert len(kept) == len(patch)
