@@ -97,6 +97,7 @@ class State:
     evaluator: object | None = None           # distributed.DaskEvaluator running the transfer waves, or None
     direct: np.ndarray | None = None          # (N, C) direct irradiance of leaves, W/m^2
     direct_error: np.ndarray | None = None    # (N, C) its standard error
+    direct_spread: np.ndarray | None = None   # (N, C) its points' i.i.d. standard error: the light's variation over the leaf
     direct_samples: np.ndarray | None = None  # (N,) points it came from
     buried: np.ndarray | None = None          # (N,) share of a triangle node's area inside closed geometry
     direct_bound: np.ndarray | None = None    # (N,) W/m^2 bound of point/spot light on a leaf (emitters.delta_light_bound)
@@ -112,6 +113,7 @@ class State:
         n = len(self.nodes)
         self.direct = np.zeros((n, self.channels))
         self.direct_error = np.zeros((n, self.channels))
+        self.direct_spread = np.zeros((n, self.channels))
         self.direct_samples = np.zeros(n, np.int64)
         self.buried = np.zeros(n)
         self.direct_bound = np.zeros(n)
@@ -395,6 +397,7 @@ def _grow_direct(state: State, n_before: int) -> None:
     state.direct_bound = np.concatenate([state.direct_bound, np.zeros(grown)])
     state.direct = np.concatenate([state.direct, np.zeros((grown, c))])
     state.direct_error = np.concatenate([state.direct_error, np.zeros((grown, c))])
+    state.direct_spread = np.concatenate([state.direct_spread, np.zeros((grown, c))])
     state.direct_samples = np.concatenate([state.direct_samples, np.zeros(grown, np.int64)])
 
 
@@ -410,14 +413,15 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
     nodes = state.nodes
     tri = scene.patch_tri[nodes.patch[ids]]
     curve = (scene.curve_center[tri], scene.curve_axis[tri], scene.curve_radius[tri])
-    h, err, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
-                                     seed=state.settings.seed + samples, keys=ids, with_error=True,
-                                     periodic=state.periodic)
+    h, err, spread, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
+                                             seed=state.settings.seed + samples, keys=ids, with_error=True,
+                                             periodic=state.periodic, with_spread=True)
     state.direct[ids] = h[:, : state.channels]
     fresh = ids[state.direct_samples[ids] == 0]
     if len(fresh):
         state.direct_bound[fresh] = delta_light_bound(scene, nodes.poly[fresh, :3], nodes.normal[fresh])
     state.direct_error[ids] = err[:, : state.channels]
+    state.direct_spread[ids] = spread[:, : state.channels]
     state.direct_samples[ids] = samples
     state.rays += rays
     state.timing["direct"] += time.perf_counter() - t
@@ -475,12 +479,23 @@ def resample_split_direct(state: State, ids: np.ndarray, budget: float) -> None:
 
 
 def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
-    """(L,) expected absolute error of each leaf's direct light as power, W."""
+    """(L,) expected absolute error of each leaf's direct light as power, W.
+
+    The error of its mean (the stratified points' ``direct_error``), except on leaves that a
+    point or spot light reaches and that can still split: there the points' i.i.d. standard
+    error (``direct_spread``), which keeps counting the light's variation over the leaf until
+    more points or smaller leaves (``split_direct``) resolve its fall-off or cone edge, so that
+    the leaves show the field and not only its mean. A sun's or sky's shadow across a leaf is
+    left to the mean's error: splitting for it would chase every leaf of a canopy."""
+    nodes = state.nodes
+    field = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & \
+        nodes.splittable(state.min_area)[leaves]
+    error = np.where(field[:, None], state.direct_spread[leaves], state.direct_error[leaves])
     if ERRORS_OF == "radiosity":
         rho = state.patch_rho[state.nodes.patch[leaves]]
-        sampled, weight = EXPECTED_ABS * channel_max(rho * state.direct_error[leaves]), channel_max(rho)
+        sampled, weight = EXPECTED_ABS * channel_max(rho * error), channel_max(rho)
     else:
-        sampled, weight = EXPECTED_ABS * channel_max(state.direct_error[leaves]), 1.0
+        sampled, weight = EXPECTED_ABS * channel_max(error), 1.0
     # a point or spot light's feature smaller than one of the samples' strata may be missed
     # altogether (zero variance, zero estimate): at most the leaf's bound over the strata
     missed = weight * state.direct_bound[leaves] / np.maximum(state.direct_samples[leaves], 1)
@@ -1176,6 +1191,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     smooth_links_at = []       # (receiver node, source, mean transfer) of the fitted links
     pairs = [(np.zeros(0, np.int64),) * 3]   # (leaf node, source, rays) to gather at the leaf's points
     seconds_in_waves = 0.0
+    # (the direct light of the leaves it splits is timed as "direct", not again here)
+    direct_before = state.timing["direct"]
     evaluated = 0
     n_below = np.diff(below.indptr)
     while len(recv):
@@ -1365,7 +1382,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     noise = EXPECTED_ABS * weight * np.sqrt(var)
     source_power = weight * (to_leaves @ src_err_node)
     state.timing["transfer"] += seconds_in_waves
-    state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time
+    state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time - \
+        (state.timing["direct"] - direct_before)
     return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final,
                     inner[links.recv], source_power, int(iterations_max))
 

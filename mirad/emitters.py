@@ -108,15 +108,20 @@ def sky_sample(emitter, si, nn, k, n: int, key, up):
 
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
-                      seed: int, keys: np.ndarray, with_error: bool = False, periodic=None):
+                      seed: int, keys: np.ndarray, with_error: bool = False, periodic=None,
+                      with_spread: bool = False):
     """Mean direct irradiance (n, C), W/m^2, over triangles verts (n, 3, 3): C = 3 (RGB), or the
     bands of a band scene (``scene.light_band_scale`` (E, C): each emitter's RGB mean times its
     factor in each band).
 
     Returns (H, rays), or with ``with_error`` (H, standard error of H (n, C), rays): the
-    sample standard deviation of the per-point estimates over sqrt(samples) (conservative for
-    the stratified points and sky directions), and under a sky at least the sky's part of H over
-    ``samples`` (a feature smaller than one stratum may be missed by every sample).
+    stratified points' collapsed-strata estimate (``stratified_error``; at most the i.i.d. one
+    below, which bounds a stratified mean's variance and is exactly zero where every point
+    agrees, as at a probe's tiny triangle), and under a sky at least
+    the sky's part of H over ``samples`` (a feature smaller than one stratum may be missed by
+    every sample). With ``with_spread`` also, after it, the points' i.i.d. standard error (their
+    sample standard deviation over sqrt(samples)): how much the light varies over the triangle,
+    which decides where a point or spot light's field needs smaller triangles.
     ``periodic``: a ``periodic.PeriodicBox`` whose sides the shadow rays wrap around, or None.
     """
     n = len(verts)
@@ -124,15 +129,19 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     channels = 3 if bands is None else bands.shape[1]
     out = np.zeros((n, channels))
     err = np.zeros((n, channels))
+    spread = np.zeros((n, channels))
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, n, per_launch):
         stop = min(n, start + per_launch)
-        h, e, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
-                                 [c[start:stop] for c in curve], samples, seed, keys[start:stop], periodic)
+        h, e, f, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
+                                    [c[start:stop] for c in curve], samples, seed, keys[start:stop], periodic)
         out[start:stop] = h
         err[start:stop] = e
+        spread[start:stop] = f
         rays += r
+    if with_spread:
+        return out, err, spread, rays
     return (out, err, rays) if with_error else (out, rays)
 
 
@@ -211,13 +220,35 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
     dr.eval(lane_sum, sky_sum)
     mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(channels)], 1)
     square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(channels)], 1)
-    stderr = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    spread = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    stderr = np.minimum(stratified_error(lane_sum, lane, k, n, channels), spread)
     if any(is_sky(e) for e in scene.light_emitters):
         # samples that all agree (a sky seen whole, or hidden whole) may have missed an occluder
         # or a gap smaller than one stratum: at least one of n samples could have turned over
         sky_mean = np.stack([dr.block_sum(sky_sum[c], n).numpy() / n for c in range(channels)], 1)
         stderr = np.maximum(stderr, sky_mean / n)
-    return mean, stderr, traced
+        spread = np.maximum(spread, sky_mean / n)
+    return mean, stderr, spread, traced
+
+
+def stratified_error(values, lane, k, n: int, channels: int) -> np.ndarray:
+    """(m, channels) standard error of the means of ``values`` (per channel, m * n lanes, n per
+    element) over stratified points: stratum k's points pair with their neighbour k ^ 1 (the
+    next cell of the same row of ``visibility.stratified``'s grid; an odd count's last with the
+    one before), and var(mean) = sum over pairs of (f_a - f_b)^2 / n^2, the collapsed-strata
+    estimator. It counts what differs within a pair of cells, not across the whole element as
+    the i.i.d. sample variance does: a shadow edge across a sunlit leaf is in a few pairs only
+    (the i.i.d. value stays sqrt(n) wider however many points), while it stays an over-estimate
+    (a pair's difference also holds the change of the mean between its cells). One point:
+    zero, as the sample variance of one."""
+    if n < 2:
+        return np.zeros((dr.width(lane) // max(n, 1), channels))
+    partner = dr.select((k ^ 1) < n, lane ^ 1, lane - 1)
+    out = []
+    for c in range(channels):
+        diff = values[c] - dr.gather(mi.Float, values[c], partner)
+        out.append(dr.block_sum(dr.square(diff), n).numpy() / (2.0 * n * n))
+    return np.sqrt(np.stack(out, 1))
 
 
 def delta_light_bound(scene, verts: np.ndarray, normals: np.ndarray) -> np.ndarray:
