@@ -187,6 +187,10 @@ def test_error_shapes_that_match_nothing_are_refused_by_the_cli(tmp_path, capsys
     err = capsys.readouterr().err
     assert "'tabel' matches none" in err and "large-box" in err and "Traceback" not in err
     assert not out.exists()
+    # and one that matches solves over those shapes
+    saved = tmp_path / "boxes.npz"
+    assert main(["solve", str(CORNELL), "-o", str(saved), "--quiet", "--tolerance", "0.2", "--error-shapes", "*-box"]) == 0
+    assert mirad.load_solution(saved).stats["error_shapes"] == ["large-box", "small-box"]
 
 
 def test_output_in_a_file_or_onto_a_folder_is_refused_before_solving(tmp_path, capsys):
