@@ -344,7 +344,8 @@ def measure(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMPL
         result.shapes = shape_errors(value, ref_b, area=area, shape=patches.shape, stderr=ref_se,
                                      names=patches.names)
         say(f"mirad tolerance {tol:g}: {dt:.2f} s, relative L1 {err['l1']:.4%} of mean(B), RMS {err['rms']:.4%}; "
-            f"solver's estimate {st.get('estimated_error', float('nan')):.4%} of mean(B - E)")
+            f"solver's estimate {st.get('estimated_error', float('nan')):.4%} of "
+            f"{'mean(B - E)' if st.get('core') == 'legacy' else 'mean(H)'}")
         finish(result)
         report(result)
 

@@ -618,10 +618,15 @@ class Solution:
         s = self.stats
         sec = s.get("seconds", {})
         phases = ", ".join(f"{k} {v:.2f}" for k, v in sec.items() if k != "total" and isinstance(v, (int, float)))
+        # (the hierarchical core's estimate is of the irradiance, the legacy core's of B - E)
+        norm = "mean(B - E)" if s.get("core") == "legacy" else "mean(H)"
+        shapes = s.get("error_shapes")
+        if shapes:
+            norm += " over " + ", ".join(shapes[:6]) + (f" and {len(shapes) - 6} more shapes" if len(shapes) > 6 else "")
         return (f"{s.get('leaves', '?')} elements ({s.get('elements', '?')} in the hierarchy), "
                 f"{s.get('links', '?')} links, {s.get('rays', 0):,} rays; {sec.get('total', 0.0):.2f} s"
                 + (f" ({phases})" if phases else "")
-                + f"; estimated error {100 * s['estimated_error']:.2f} % of mean(B - E) (tolerance "
+                + f"; estimated error {100 * s['estimated_error']:.2f} % of {norm} (tolerance "
                 f"{100 * s['settings']['tolerance']:.2g} %); "
                 + (f"{s['solver']} solver, {s.get('solver_iterations', '?')} iterations; " if "solver" in s else "")
                 + (f"{s['clusters']} clusters of patches as sources; " if s.get("clusters") else "")

@@ -778,6 +778,7 @@ def test_the_tolerance_over_some_shapes_holds_on_them_and_the_estimate_says_so()
     tol = 0.1
     sol = mirad.solve(scene, tolerance=tol, error_shapes="*-box", **HIER)
     assert sol.stats["error_shapes"] == ["large-box", "small-box"]
+    assert "% of mean(H) over large-box, small-box (tolerance" in sol.summary()
     boxes = np.isin(np.asarray(scene.shape_ids)[scene.tri_shape], ["large-box", "small-box"])
     a = scene.tri_area[boxes, None]
     reflected = np.maximum(ref - scene.tri_emission, 0.0)[boxes]
