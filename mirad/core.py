@@ -1133,18 +1133,37 @@ def overhangs(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
         (nodes.kind[src] == FACE)
 
 
-def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
-    """Pairs recv <- src (M,) with ``rays`` per point, their overhanging sources (``overhangs``)
-    replaced by their children, down to sources that fit or to triangles: geometry, known
-    before any ray, so no pair is evaluated only to be split."""
-    done = [(recv[:0], src[:0], rays[:0])]
-    while len(recv):
+def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair: np.ndarray):
+    """Pairs recv <- src (M,), with their other arrays ``per_pair`` (M,) each, their
+    overhanging sources (``overhangs``) replaced by their children (which take the pair's
+    other values), down to sources that fit or to triangles: geometry, known before any ray,
+    so no pair is evaluated only to be split. Returns (recv, src, *per_pair)."""
+    now = (recv, src, *per_pair)
+    done = [tuple(a[:0] for a in now)]
+    while len(now[0]):
+        recv, src = now[:2]
         split = overhangs(nodes, recv, src) & (nodes.children[src, 0] >= 0)
-        done.append((recv[~split], src[~split], rays[~split]))
+        done.append(tuple(a[~split] for a in now))
         kids = nodes.children[src[split]]
         own, slot = np.nonzero(kids >= 0)
-        recv, src, rays = recv[split][own], kids[own, slot].astype(np.int64), rays[split][own]
-    return tuple(np.concatenate([d[i] for d in done]) for i in range(3))
+        now = (recv[split][own], kids[own, slot].astype(np.int64), *(a[split][own] for a in now[2:]))
+    return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
+
+
+def first_rays(state: State, links: Links, node: np.ndarray, src: np.ndarray, link: np.ndarray, rays: np.ndarray,
+               b_src: np.ndarray, h_node: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M,) shadow rays per point that gathered pairs node <- src (M,) start with: one where the
+    visibility noise of their link's transfer (``link`` (M,) its index: its form factor F and
+    visibility V from the passes' rays), (F b)^2 V (1 - V) / K per ray per point, is within
+    the pair's allowance with one ray per point (``gather_allowance`` over ``output_share``);
+    ``rays`` (M,) elsewhere. Decided before the pair's own rays, from rays independent of them."""
+    ff = links.ff[link].astype(np.float64)
+    unocc = links.ff_unocc[link].astype(np.float64)
+    vis = np.where(unocc > 0, ff / np.where(unocc > 0, unocc, 1.0), 1.0)
+    b = b_src[src]
+    var_one = (unocc * b) ** 2 * vis * (1.0 - vis) / RECEIVER_POINTS
+    allowed = gather_allowance(ff, b, h_node[node], tolerance)
+    return np.where(var_one * output_share(state, node) <= allowed, 1, rays)
 
 
 def final_gather(state: State, solved: Solved) -> Gathered:
@@ -1187,9 +1206,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     link_partial = (links.ff < links.ff_unocc) & (links.ff > 0)
     recv, src = links.recv[on_inner].astype(np.int64), links.src[on_inner].astype(np.int64)
     rays = np.where(link_partial[on_inner], GATHER_RAYS, 1)
+    origin = on_inner.astype(np.int64)                      # the link each pair comes from
     smooth_parts = []          # (leaf position, source, transfer, variance) from linear fits
     smooth_links_at = []       # (receiver node, source, mean transfer) of the fitted links
-    pairs = [(np.zeros(0, np.int64),) * 3]   # (leaf node, source, rays) to gather at the leaf's points
+    pairs = [(np.zeros(0, np.int64),) * 4]   # (leaf node, source, rays, link) to gather at the leaf's points
     seconds_in_waves = 0.0
     # (the direct light of the leaves it splits is timed as "direct", not again here)
     direct_before = state.timing["direct"]
@@ -1204,10 +1224,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         direct = descend & whole & (n_below[recv] * GATHER_RAYS <= SOURCE_POINTS)
         if direct.any():
             leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
-            pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner]))
+            pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner], origin[direct][owner]))
         descend &= ~direct
-        pairs.append((recv[~inner[recv]], src[~inner[recv]], rays[~inner[recv]]))
-        recv, src, rays = recv[descend], src[descend], rays[descend]
+        at_leaf = ~inner[recv]
+        pairs.append((recv[at_leaf], src[at_leaf], rays[at_leaf], origin[at_leaf]))
+        recv, src, rays, origin = recv[descend], src[descend], rays[descend], origin[descend]
         if not len(recv):
             break
         whole = rays > 1
@@ -1228,11 +1249,14 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         rest = np.flatnonzero(~smooth)
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
-        recv, src, rays = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own]
-    pair_node, pair_src, pair_rays = (np.concatenate([p[i] for p in pairs]) for i in range(3))
+        recv, src, rays, origin = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own], origin[rest][own]
+    pair_node, pair_src, pair_rays, pair_link = (np.concatenate([p[i] for p in pairs]) for i in range(4))
     # (a source that overhangs its triangles near the receiver is split below whatever its rays
     # say: it descends first, and only the sources that fit are evaluated)
-    pair_node, pair_src, pair_rays = overhang_descent(nodes, pair_node, pair_src, pair_rays)
+    pair_node, pair_src, pair_rays, pair_link = overhang_descent(nodes, pair_node, pair_src, pair_rays, pair_link)
+    # (partly visible links' pairs start at GATHER_RAYS per point, or at one where their link's own
+    # visibility says one is enough)
+    pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     seconds_in_waves += seconds
     # pairs whose few rays disagreed more than their share of the tolerance allows are
