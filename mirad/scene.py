@@ -1128,7 +1128,7 @@ def _evaluate_materials(scene: Scene, shapes: list, where: str) -> None:
                     scene.tri_specular):
             arr[tris] = np.clip(arr[tris], 0.0, 1.0)
         if bsdf is not None:
-            _record_approximation(scene, sid, bsdf, tris, non_diffuse and not leaf)
+            _record_approximation(scene, sid, bsdf, tris, non_diffuse and not leaf, leaf=leaf)
 
 
 #: Sample points per triangle: least for a diffuse BSDF (one direction each is exact), least for a
@@ -1430,12 +1430,17 @@ def _triangle_means(values: np.ndarray, owner: np.ndarray, n: int) -> np.ndarray
     return sums / np.maximum(count, 1)[:, None]
 
 
-def _record_approximation(scene: Scene, sid: str, bsdf, tris: np.ndarray, non_diffuse: bool) -> None:
-    """Warn and record in ``scene.approximations`` what the diffuse, opaque model loses for a shape."""
+def _record_approximation(scene: Scene, sid: str, bsdf, tris: np.ndarray, non_diffuse: bool, *,
+                          leaf: bool = False) -> None:
+    """Warn and record in ``scene.approximations`` what the diffuse, opaque model loses for a shape.
+    A ``leaf`` BSDF's diffuse transmission is modelled (``tri_leaf``: the hierarchical core carries
+    it to the other side; a legacy solve counts it in ``model_error`` and says so when it matters),
+    so a leaf loses nothing here: it was said lost on every leaf scene while the default solve
+    carried it."""
     area = scene.tri_area[tris]
     mean = lambda a: (a[tris] * area[:, None]).sum(0) / area.sum()  # noqa: E731
     rho, spec = mean(scene.tri_rho), mean(scene.tri_specular)
-    lost = np.maximum(mean(scene.tri_transmittance), mean(scene.back_transmittance))
+    lost = 0.0 * rho if leaf else np.maximum(mean(scene.tri_transmittance), mean(scene.back_transmittance))
     if not non_diffuse and lost.max() < _APPROX_MIN:
         return
     name = "leaf" if is_leaf(bsdf) else bsdf.class_name()

@@ -233,6 +233,25 @@ def test_loader_reads_a_leaf_on_both_sides():
     check_patches(scene)
 
 
+def test_a_leaf_is_not_said_lost_by_the_loader_and_a_legacy_solve_counts_its_transmission():
+    """The loader's warning that a BSDF "transmits light ... lost" is for what the diffuse, opaque
+    model drops (glass, masks); a leaf's transmission is modelled and the default core carries it,
+    yet every leaf scene was told it was lost. The legacy core does drop it: its model error says
+    so (tau over rho on this plate, above any tolerance), the hierarchical core's is zero."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = mirad.load_scene(sun_scene(leaf()))
+    assert not [w for w in caught if "transmits light" in str(w.message)]
+    assert scene.approximations == [] and scene.non_diffuse_shapes == []
+    carried = mirad.solve(scene, tolerance=0.1)
+    assert carried.stats["leaf_transmission"] == "carried" and carried.stats["model_error"] == 0.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        legacy = mirad.solve(scene, tolerance=0.1, core="legacy")
+    assert legacy.stats["model_error"] > 0.1
+    assert any("transmitting BSDFs" in str(w.message) for w in caught)
+
+
 def test_loader_reads_a_twosided_pair_per_side():
     front, back = leaf([0.05, 0.1, 0.05], [0.04, 0.1, 0.03]), leaf([0.0, 0.0, 0.0], [0.04, 0.1, 0.03])
     scene = load(sun_scene(pair(front, back)))
