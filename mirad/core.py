@@ -1443,9 +1443,10 @@ def source_state(state: State, solved: Solved) -> SourceState:
     rho_mean = float((leaf_area * channel_max(solved.system.rho)).sum() / max(leaf_area.sum(), 1e-300))
     # an error in what a face cluster sends reaches the output after interreflection (and,
     # for the reflected radiosity, one more reflection)
-    propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * amplification(state, solved)
+    gain = amplification(state, solved)
+    propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * gain
     if not state.counted.all():
-        state.weight = output_weights(state, solved, amplification(state, solved))
+        state.weight = output_weights(state, solved, gain)
     source = SourceState(channel_max(b_node), below, dev, propagation,
                          output_weight=output_weight(state, np.arange(n)))
     # face clusters' mean errors are sampling errors of unbiased estimates: summed per
