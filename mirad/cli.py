@@ -89,6 +89,8 @@ def _solve(args) -> int:
 
 
 def _info(args) -> int:
+    import numpy as np
+
     import mirad
 
     scene = mirad.load_scene(args.scene, variant=args.variant)
@@ -118,6 +120,20 @@ def _info(args) -> int:
     if features["translucent_leaf_triangles"]:
         print(f"  translucent leaves (transmittance read per side, docs/leaves.md): "
               f"{features['translucent_leaf_triangles']} triangles")
+    if scene.tri_leaf.any():
+        # the tolerance is over every shape's area by default: where the leaves are a small part
+        # of it, their own error can be several times the estimate (error_shapes)
+        import os.path
+
+        leafy = sorted({str(scene.shape_ids[k]) for k in np.unique(scene.tri_shape[scene.tri_leaf])})
+        # (over both sides of two-sided triangles, as the estimate counts area)
+        patch_area = scene.tri_area[scene.patch_tri]
+        share = float(patch_area[scene.tri_leaf[scene.patch_tri]].sum() / patch_area.sum())
+        prefix = os.path.commonprefix(leafy)
+        covers = prefix and all(str(i) in leafy for i in scene.shape_ids if str(i).startswith(prefix))
+        named = prefix + "*" if covers and len(leafy) > 1 else ",".join(leafy)
+        print(f"  leaf shapes: {len(leafy)} ({share:.0%} of the area); to hold the tolerance on their light "
+              f"alone: --error-shapes '{named}'")
     if features["dropped_zero_area_triangles"]:
         print(f"  zero-area triangles dropped: {features['dropped_zero_area_triangles']}")
     return 0

@@ -109,3 +109,22 @@ def test_time_at_interpolates_log_log(bench):
     assert math.isnan(bench.time_at(0.001, [1.0, 4.0], [0.04, 0.01]))
     assert bench.parse_radiance("p16 a4 ab3 ad256") == {"points": 16, "ambient": 4, "params": ["-ab", "3", "-ad", "256"]}
     assert bench.parse_helios("d100 s1000 k3") == {"direct": 100, "diffuse": 1000, "depth": 3}
+
+
+def test_info_names_the_leaf_shapes_and_a_pattern_that_picks_them(bench, tmp_path, capsys):
+    """`mirad info` on a scene with leaves says what share of the area they are and gives the
+    --error-shapes pattern that holds the tolerance on them; the pattern names the leaf shapes and
+    nothing else."""
+    from mirad.cli import main
+
+    path = bench.make_scene(tmp_path, leaves=12, seed=3)
+    assert main(["info", str(path)]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if "leaf shapes:" in x][0]
+    pattern = line.split("--error-shapes '")[1].rstrip("'")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = mirad.load_scene(str(path))
+    leafy = sorted({scene.shape_ids[k] for k in np.unique(scene.tri_shape[scene.tri_leaf])})
+    assert f"leaf shapes: {len(leafy)} (" in line
+    sol = mirad.solve(scene, tolerance=0.3, error_shapes=pattern)
+    assert sol.stats["error_shapes"] == leafy
