@@ -173,7 +173,9 @@ def test_bound_estimate_covers_the_furnace_error():
 
 
 def test_culling_changes_rays_not_the_solution(cornell):
-    plain = mirad.solve(cornell, tolerance=0.1, quiet=True)
+    # (both on the legacy core, the only one with shaft culling: since the default switch `plain`
+    # was the hierarchical core's solve, and the test compared two cores' rays, passing by 0.3 %)
+    plain = mirad.solve(cornell, tolerance=0.1, core="legacy", quiet=True)
     culled = mirad.solve(cornell, tolerance=0.1, shaft_culling="on", core="legacy", quiet=True)
     assert culled.stats["rays"] < 0.8 * plain.stats["rays"]
     a = culled.triangle_area
