@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .arrays import MAX_LANES, RAY_OFFSET, to_vector3
+from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_vector3
 from .visibility import count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -212,7 +212,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         dist = dr.select(is_inf, dr.largest(mi.Float), dr.norm(to_light))
         direction = dr.select(is_inf, ds.d, to_light / dr.select(dist > 0, dist, 1.0))
         ray = mi.Ray3f(o, direction)
-        ray.maxt = dr.select(is_inf, dr.largest(mi.Float), dist * (1 - 1e-4))
+        ray.maxt = dr.select(is_inf, dr.largest(mi.Float), shadow_ray_length(dist, offset))
         blocked = _blocked(scene.mi_scene, ray, active, periodic)
         w = dr.select(active & ~blocked, cos, 0.0)
         lane_sum = add(lane_sum, e_i, spec * w)

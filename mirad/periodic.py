@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
+from .arrays import shadow_ray_length
 from .errors import SceneError, SettingsError
 
 import drjit as dr  # noqa: E402
@@ -394,6 +395,6 @@ def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, 
     traced = (total > 0) & ((g_exact > 0) | ~planar)
     d = target - o
     dist = dr.norm(d)
-    blocked = ray_test(mi_scene, box, o, d / dr.maximum(dist, 1e-30), dist * (1 - 1e-4), traced)
+    blocked = ray_test(mi_scene, box, o, d / dr.maximum(dist, 1e-30), shadow_ray_length(dist, offset), traced)
     v = dr.select(traced & ~blocked, 1.0, 0.0)
     return kernel, g_volume, traced, v

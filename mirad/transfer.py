@@ -25,7 +25,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .nodes import RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children
-from .arrays import MAX_LANES, to_float, to_uint, to_vector3
+from .arrays import MAX_LANES, shadow_ray_length, to_float, to_uint, to_vector3
 from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -225,7 +225,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     g_volume = volume_sample(x, nx, ny, tri_corners, per_area, planar, offset)
     traced = valid & ((g_exact > 0) | ~planar)
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
-    ray.maxt = dist * (1 - 1e-4)
+    ray.maxt = shadow_ray_length(dist, offset)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
     return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .arrays import MAX_LANES, RAY_OFFSET, to_float, to_vector3
+from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_vector3
 from .formfactor import point_to_triangle_dr
 
 import drjit as dr  # noqa: E402
@@ -256,7 +256,7 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     dist = dr.norm(d)
     active = (g > 0) & (dist > 0) & (dr.dot(d, rn) > 0) & (dr.dot(d, sn) < 0)
     ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
-    ray.maxt = dist * (1 - 1e-4)
+    ray.maxt = shadow_ray_length(dist, geo.offset)
     traced = active & (cls == 0)
     blocked = mi_scene.ray_test(ray, traced) | (cls == 2)
     v = dr.select(active & ~blocked, 1.0, 0.0)
@@ -355,7 +355,7 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
     active = (dist > 0) & (cos_x > 0) & (cos_y > 0) & (f_patch > 0)
     g = dr.select(active, f_patch * a_cluster / dr.maximum(a_patch, 1e-30), 0.0)
     ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
-    ray.maxt = dist * (1 - 1e-4)
+    ray.maxt = shadow_ray_length(dist, geo.offset)
     blocked = mi_scene.ray_test(ray, active)
     v = dr.select(active & ~blocked, 1.0, 0.0)
     gv = g * v
@@ -439,7 +439,7 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         # the part of it the clipped form factor counts
         active = (g > 0) & (dist > 0) & (dr.dot(d, nx) > 0) & (dr.dot(d, sn) < 0)
         ray = mi.Ray3f(o, d / dr.select(dist > 0, dist, 1.0))
-        ray.maxt = dist * (1 - 1e-4)
+        ray.maxt = shadow_ray_length(dist, geo.offset)
         blocked = mi_scene.ray_test(ray, active)
         seen = active & ~blocked
         kernel = dr.select(active, dr.dot(d, nx) * -dr.dot(d, sn) / dr.square(dr.square(dist)), 0.0)

@@ -288,17 +288,21 @@ def test_each_side_of_a_two_sided_sheet_gets_its_own_radiosity(tmp_path, sheet_s
         assert mean == pytest.approx(mean_ref, rel=REF_REL)
 
 
-@pytest.mark.parametrize("core", [
-    pytest.param("legacy", marks=pytest.mark.xfail(
+@pytest.mark.parametrize("core, seed", [
+    pytest.param("legacy", 0, marks=pytest.mark.xfail(
         strict=True, reason="measured 2026-11-23 at tolerance 0.05: triangles below the sheet get up to 1.9e-4 "
         "W/m^2 (median ~1e-5) against ~0.3 on the lit ceiling: a small leak through an opaque sheet")),
-    "hierarchical"])
-def test_no_light_crosses_an_opaque_two_sided_sheet(tmp_path, core):
+    ("hierarchical", 0),
+    # (seed 5 put one of a wall link's source points 0.04 mm above the sheet: shadow rays that
+    # stopped 1e-4 of their length short of it, 0.2 mm, never met the sheet, and the floor read
+    # 1.3e-3 W/m^2; they stop half the ray offset short now, arrays.shadow_ray_length)
+    ("hierarchical", 5)])
+def test_no_light_crosses_an_opaque_two_sided_sheet(tmp_path, core, seed):
     # a two-sided sheet closes the room at z = 1 (edges on the walls): everything below stays black
     parts = cases.room_parts()
     parts["sheet"] = cases.part(cases.grid((0, 0, 1.0), (2.0, 0, 0), (0, 2.0, 0), 4, 4), 0.5, twosided=True)
     scene = mirad.load_scene(cases.to_dict(tmp_path, parts))
-    sol = mirad.solve(scene, tolerance=0.05, core=core)
+    sol = mirad.solve(scene, tolerance=0.05, core=core, seed=seed)
     below = np.flatnonzero(scene.tri_vertices[:, :, 2].max(1) <= 1.0 + 1e-9)
     below = below[scene.tri_shape[below] != scene.shape_index("sheet")]
     sheet = scene.tri_shape == scene.shape_index("sheet")
