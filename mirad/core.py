@@ -1215,13 +1215,17 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     direct_before = state.timing["direct"]
     evaluated = 0
     n_below = np.diff(below.indptr)
+    failed = 0.0                # share of the last round's fits that did not fit
     while len(recv):
         descend = inner[recv]
         # a fit of a partly shadowed link costs a ray to each of the source's points from
         # each of the node's points; where the leaves below cost no more with their own
         # GATHER_RAYS per point, they take the link directly
         whole = rays > 1
-        direct = descend & whole & (n_below[recv] * GATHER_RAYS <= SOURCE_POINTS)
+        # (a fit that fails costs its rays and then the leaves' own anyway: the leaves' rays are
+        # the cheaper way once n_below GATHER_RAYS (1 - p) <= SOURCE_POINTS, with p the share of
+        # the last round's fits that failed, 0 at the first round)
+        direct = descend & whole & (n_below[recv] * GATHER_RAYS * (1.0 - failed) <= SOURCE_POINTS)
         if direct.any():
             leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
             pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner], origin[direct][owner]))
@@ -1247,6 +1251,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1)))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth)
+        tried = np.flatnonzero(whole)
+        failed = float((~smooth[tried]).mean()) if len(tried) else failed
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays, origin = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own], origin[rest][own]
