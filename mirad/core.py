@@ -1453,8 +1453,9 @@ def source_state(state: State, solved: Solved) -> SourceState:
     propagation = (rho_mean if ERRORS_OF == "radiosity" else 1.0) * gain
     if not state.counted.all():
         state.weight = output_weights(state, solved, gain)
+    # (None: every shape counts, each node's weight is 1)
     source = SourceState(channel_max(b_node), below, dev, propagation,
-                         output_weight=output_weight(state, np.arange(n)))
+                         output_weight=None if state.counted.all() else state.weight)
     # face clusters' mean errors are sampling errors of unbiased estimates: summed per
     # receiver (its points are shared by its links), in quadrature over receivers
     raw = face_mean_errors(state.nodes, links, source, weighted=False)

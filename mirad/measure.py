@@ -34,6 +34,7 @@ from . import _runtime  # noqa: F401
 from .errors import SceneError, SettingsError
 from .metrics import compare, image_noise_floor, image_relative_l1, image_relative_mse, shape_errors
 from .reference import DEFAULT_CACHE, cached_image, cached_reference, camera_rays, triangle_reference
+from .solution import estimate_norm
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -344,8 +345,7 @@ def measure(scene, *, tolerances=DEFAULT_TOLERANCES, pt_samples=DEFAULT_PT_SAMPL
         result.shapes = shape_errors(value, ref_b, area=area, shape=patches.shape, stderr=ref_se,
                                      names=patches.names)
         say(f"mirad tolerance {tol:g}: {dt:.2f} s, relative L1 {err['l1']:.4%} of mean(B), RMS {err['rms']:.4%}; "
-            f"solver's estimate {st.get('estimated_error', float('nan')):.4%} of "
-            f"{'mean(B - E)' if st.get('core') == 'legacy' else 'mean(H)'}")
+            f"solver's estimate {st.get('estimated_error', float('nan')):.4%} of {estimate_norm(st)}")
         finish(result)
         report(result)
 

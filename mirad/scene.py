@@ -1440,7 +1440,7 @@ def _record_approximation(scene: Scene, sid: str, bsdf, tris: np.ndarray, non_di
     area = scene.tri_area[tris]
     mean = lambda a: (a[tris] * area[:, None]).sum(0) / area.sum()  # noqa: E731
     rho, spec = mean(scene.tri_rho), mean(scene.tri_specular)
-    lost = 0.0 * rho if leaf else np.maximum(mean(scene.tri_transmittance), mean(scene.back_transmittance))
+    lost = np.zeros_like(rho) if leaf else np.maximum(mean(scene.tri_transmittance), mean(scene.back_transmittance))
     if not non_diffuse and lost.max() < _APPROX_MIN:
         return
     name = "leaf" if is_leaf(bsdf) else bsdf.class_name()

@@ -138,8 +138,9 @@ class Settings:
         The shapes the tolerance is measured over: comma-separated shape ids or shell-style
         patterns ("plant-*,stem"; the API also takes a list). The estimate is then relative to
         their light alone (their area times their mean irradiance) and counts the other
-        shapes' errors only as far as they can reach them: as reflected light (their
-        reflectance times the solution's interreflection gain). A canopy on a large ground
+        shapes' errors only as far as they can reach them: the share of their reflected light
+        that arrives on the named shapes, directly by their links and after interreflection
+        (``core.output_weights``). A canopy on a large ground
         asked for ``error_shapes="plant-*"`` gets per-leaf accuracy, where over every shape
         the ground's area dilutes the leaves' error. Every pattern must match a shape;
         hierarchical core only. None: every shape.

@@ -618,11 +618,7 @@ class Solution:
         s = self.stats
         sec = s.get("seconds", {})
         phases = ", ".join(f"{k} {v:.2f}" for k, v in sec.items() if k != "total" and isinstance(v, (int, float)))
-        # (the hierarchical core's estimate is of the irradiance, the legacy core's of B - E)
-        norm = "mean(B - E)" if s.get("core") == "legacy" else "mean(H)"
-        shapes = s.get("error_shapes")
-        if shapes:
-            norm += " over " + ", ".join(shapes[:6]) + (f" and {len(shapes) - 6} more shapes" if len(shapes) > 6 else "")
+        norm = estimate_norm(s)
         return (f"{s.get('leaves', '?')} elements ({s.get('elements', '?')} in the hierarchy), "
                 f"{s.get('links', '?')} links, {s.get('rays', 0):,} rays; {sec.get('total', 0.0):.2f} s"
                 + (f" ({phases})" if phases else "")
@@ -631,6 +627,17 @@ class Solution:
                 + (f"{s['solver']} solver, {s.get('solver_iterations', '?')} iterations; " if "solver" in s else "")
                 + (f"{s['clusters']} clusters of patches as sources; " if s.get("clusters") else "")
                 + f"variant {s.get('variant', '?')}.")
+
+
+def estimate_norm(stats: dict) -> str:
+    """What a solution's ``stats["estimated_error"]`` is relative to, in words: the hierarchical
+    core's estimate is of the irradiance, "mean(H)", the legacy core's of the reflected radiosity,
+    "mean(B - E)"; "over" the shapes ``error_shapes`` named, where it was given."""
+    norm = "mean(B - E)" if stats.get("core") == "legacy" else "mean(H)"
+    shapes = stats.get("error_shapes")
+    if shapes:
+        norm += " over " + ", ".join(shapes[:6]) + (f" and {len(shapes) - 6} more shapes" if len(shapes) > 6 else "")
+    return norm
 
 
 def load_solution(path, scene=None) -> Solution:
