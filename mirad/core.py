@@ -1188,6 +1188,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     below = ancestor_matrix(nodes, leaves).T.tocsr()        # (N, L): leaves (their positions) below a node
     visible = below @ (nodes.area[leaves] * (1.0 - state.buried[leaves]))
     varies = children_deviation(nodes, solved.b_node, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
+    fitted = gradient_sent(state, below, leaves) if LINEAR_SOURCES else np.zeros(n, bool)
     tol = state.settings.tolerance
     centroid = nodes.poly[leaves, :3].mean(axis=1)
     position = np.full(n, -1, np.int64)
@@ -1293,7 +1294,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
-        error = g_ff * b_src[pair_src] * varies[pair_src] * kernel_change(nodes, pair_node, pair_src)
+        error = g_ff * b_src[pair_src] * varies[pair_src] * mean_error_order(nodes, pair_node, pair_src, fitted)
         uneven = error ** 2 > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
         split = (overhang | uneven) & (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & \
             (nodes.kind[pair_src] != VOLUME)
@@ -1361,9 +1362,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     var_node = np.bincount(recv, weights=np.concatenate([g_var + g_shadow] + [p[3] for p in stay] +
                                                         [p[3] for p in smooth_parts]), minlength=n)
     # and the error of taking each source's mean, as refinement's source term at the level
-    # the transfer now has (its children's deviation times the kernel's change across it)
-    src_err_node = np.bincount(recv, weights=ff * b_src[srcs] * varies[srcs] * kernel_change(nodes, recv, srcs),
-                               minlength=n)
+    # the transfer now has (its children's deviation times the kernel's change across it, or
+    # that change squared where linear_sources sends the source's gradient: mean_error_order)
+    src_err_node = np.bincount(recv, minlength=n, weights=ff * b_src[srcs] * varies[srcs] *
+                               mean_error_order(nodes, recv, srcs, fitted))
     to_leaves = ancestor_matrix(nodes, final_leaves)
     var = to_leaves @ var_node
     # the system again, with every link on an inner node replaced by its leaves' own
@@ -1463,6 +1465,30 @@ def source_state(state: State, solved: Solved) -> SourceState:
     per_recv = np.bincount(links.recv[face], weights=raw[face], minlength=n)
     quad = float(np.sqrt(np.sum(per_recv ** 2)))
     return replace(source, mean_weight=per_recv / quad if quad > 0 else np.zeros(n))
+
+
+def gradient_sent(state: State, below: sp.csr_matrix, leaves: np.ndarray) -> np.ndarray:
+    """(N,) bool: nodes whose radiosity gradient ``linear_sources`` sends with their mean: flat
+    triangles and face clusters (every leaf below within PLANE_NORMAL_TOL of their plane) with
+    some visible area. ``below`` (N, L): the leaves (positions in ``leaves``) under each node."""
+    nodes = state.nodes
+    n = len(nodes)
+    rows = np.repeat(np.arange(n), np.diff(below.indptr))
+    leaf = leaves[below.indices]
+    flat = np.ones(n, bool)
+    np.logical_and.at(flat, rows,
+                      np.einsum("mc,mc->m", nodes.normal[leaf], nodes.normal[rows]) >= 1.0 - PLANE_NORMAL_TOL)
+    seen = np.bincount(rows, weights=nodes.area[leaf] * (1.0 - state.buried[leaf]), minlength=n) > 0
+    return flat & seen & np.isin(nodes.kind, (TRIANGLE, FACE))
+
+
+def mean_error_order(nodes: Nodes, recv: np.ndarray, src: np.ndarray, fitted: np.ndarray) -> np.ndarray:
+    """(M,) what turns a source's radiosity deviation into the error of sending it with its
+    mean: the kernel's relative change across it (``refine.kernel_change``), squared where its
+    gradient is sent too (``fitted``): the least-squares plane leaves a residual with no mean
+    and no first moment over the source, which only the kernel's second-order change weighs."""
+    change = kernel_change(nodes, recv, src)
+    return np.where(fitted[src], change * change, change)
 
 
 def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) -> np.ndarray:
