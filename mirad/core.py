@@ -35,14 +35,14 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
-                    build_nodes, split_triangles, triangle_samples)
+                    build_nodes, split_triangles)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
                      refinement_threshold, unresolved, volume_transfer_std)
 from .scene import Scene
 from .errors import SettingsError
 from .settings import Settings, shape_patterns
-from .transfer import NodeBuffers, buried_fraction, evaluate, point_to_polygon_dr, reverse_form_factor
+from .transfer import NodeBuffers, buried_fraction, buried_share, evaluate, point_to_polygon_dr, reverse_form_factor
 from .arrays import RAY_OFFSET, channel_max, to_vector3
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
@@ -68,8 +68,6 @@ SOURCE_DEVIATION = "measured"
 PASS_SOLVE_SHARE = 0.01
 #: Points measuring the buried share of a triangle node that is partly buried.
 BURIED_POINTS = 1024
-#: Nodes per batch of those points (bounds their memory: 24 kB a node).
-BURIED_CHUNK = 4096
 #: Bytes a link costs at the peak of a solve (its arrays, the sparse matrix, wave temporaries).
 LINK_PEAK_BYTES = 120
 
@@ -385,10 +383,9 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
         some = (share > 0) & (share < 1)
         state.buried[ids] = np.where(some, 0.0, share)
         partial = ids[some]
-        for a in range(0, len(partial), BURIED_CHUNK):
-            part = partial[a:a + BURIED_CHUNK]
-            pts, nrm = triangle_samples(nodes, part, BURIED_POINTS, state.settings.seed)
-            state.buried[part] = buried_fraction(mi_scene, pts, nrm, state.offset)
+        if len(partial):
+            state.buried[partial] = buried_share(mi_scene, _buffers(state), partial, BURIED_POINTS,
+                                                 state.settings.seed, state.offset)
 
 
 def _grow_direct(state: State, n_before: int) -> None:
@@ -973,7 +970,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     gather_own = sp.csr_matrix((np.ones(len(mine)), (row_of[pair_node[mine]], np.arange(len(mine)))),
                                shape=(len(fit_leaves), len(mine)))
     own_points = points[mine].astype(np.float64)
-    fit_w = nodes.recv_w[leaf_nodes].astype(np.float64)
     fit_pos = leaf_pos[leaf_nodes]
     rho = state.patch_rho[nodes.patch[leaves]]                # (L', C)
     frame = (t1, t2)
@@ -995,30 +991,44 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     reach = np.bincount(bal_pos, weights=nodes.area[bal_node] * bal_ff, minlength=len(sources))
     moved_area = nodes.area[r]
 
+    # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
+    k_count = own_points.shape[1]
+    weighted_design = wts[:, :, None] * design                 # (P, K, 3)
+    design_sum = weighted_design.sum(axis=1)                   # (P, 3)
+    design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))
+    fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
+    inv_seen = 1.0 / np.maximum(seen, 1e-9)
+    rho_fit = rho[fit_pos]                                     # (P, C)
+    to_source = sp.csr_matrix((np.ones(len(own_s)), (own_s, np.arange(len(own_s)))), shape=(len(sources), len(own_s)))
+    to_receiver = sp.csr_matrix((np.ones(len(r)), (r, np.arange(len(r)))), shape=(n, len(r)))
+    moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
+    taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
+    src_own = pair_src[mine]
+
     def extra(b_leaf: np.ndarray) -> np.ndarray:
-        b_node = pull @ b_leaf
-        out = np.zeros((len(leaves), b_leaf.shape[1]))
-        b_own = b_node[pair_src[mine]]
-        for ch in range(b_leaf.shape[1]):
-            # each leaf's light at its points from its pairs, less its mean: the spread
-            hl = (gather_own @ (own_points * b_own[:, ch, None]))[fit_row]
-            spread = hl - (fit_w * hl).sum(axis=1, keepdims=True)
-            value = (b_leaf[fit_pos, ch] / np.maximum(seen, 1e-9))[:, None] + rho[fit_pos, ch][:, None] * spread
-            per = np.einsum("pk,pki,pk->pi", wts, design, value)
-            rhs = np.stack([np.bincount(own_s, weights=per[:, j], minlength=len(sources)) for j in range(3)], axis=1)
-            coef = np.einsum("sij,sj->si", inverse, rhs)       # [B at origin, dB/du, dB/dv]
-            dh = (mu * coef[s_pos, 1:]).sum(axis=1)
-            # (on the receiver node: a leaf, or a face cluster whose leaves all take it)
-            node_dh = np.bincount(r, weights=dh, minlength=n)
-            # a gradient has zero mean over its source: its corrections only move the source's
-            # light between receivers. What the first moments leave of their sum (the light
-            # of its receivers through volume clusters, which carry the cluster's mean, and the
-            # expansions' own error) is taken back from all of its transfers by power
-            left = np.bincount(s_pos, weights=moved_area * dh, minlength=len(sources))
-            share = np.divide(left, reach, out=np.zeros(len(sources)), where=reach > 0)
-            node_dh -= np.bincount(bal_node, weights=bal_ff * share[bal_pos], minlength=n)
-            out[:, ch] = to_leaves @ node_dh
-        return out
+        channels = b_leaf.shape[1]
+        b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
+        # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
+        hl = (gather_own @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), -1))
+        hl = hl.reshape(len(fit_leaves), k_count, channels)
+        mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
+        # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
+        # of that light over its points (its value at each point), weighted by the design
+        spread = np.matmul(design_t, hl[fit_row]) - design_sum[:, :, None] * mean[fit_row][:, None, :]
+        per = design_sum[:, :, None] * (b_leaf[fit_pos] * inv_seen[:, None])[:, None, :] + \
+            rho_fit[:, None, :] * spread                                        # (P, 3, C)
+        rhs = (to_source @ per.reshape(len(own_s), -1)).reshape(len(sources), 3, channels)
+        coef = np.einsum("sij,sjc->sic", inverse, rhs)      # [B at origin, dB/du, dB/dv] per channel
+        dh = np.einsum("mi,mic->mc", mu, coef[s_pos, 1:])
+        # (on the receiver node: a leaf, or a face cluster whose leaves all take it)
+        node_dh = to_receiver @ dh
+        # a gradient has zero mean over its source: its corrections only move the source's
+        # light between receivers. What the first moments leave of their sum (the light
+        # of its receivers through volume clusters, which carry the cluster's mean, and the
+        # expansions' own error) is taken back from all of its transfers by power
+        left = moved @ dh
+        share = np.divide(left, reach[:, None], out=np.zeros_like(left), where=reach[:, None] > 0)
+        return to_leaves @ (node_dh - taken @ share)
 
     return extra
 

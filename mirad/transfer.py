@@ -322,17 +322,38 @@ def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: f
     n, s = points.shape[:2]
     out = np.zeros(n)
     per_launch = max(1, MAX_LANES // max(s, 1))
-    back_side = int(mi.BSDFFlags.BackSide)
     for a in range(0, n, per_launch):
         b = min(n, a + per_launch)
-        p = to_vector3(points[a:b].reshape(-1, 3))
-        d = to_vector3(normals[a:b].reshape(-1, 3))
-        ray = mi.Ray3f(p + d * offset, d)
-        si = mi_scene.ray_intersect(ray)
-        flags = si.bsdf(ray).flags()
-        # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
-        # geometric normal si.n points the other way)
-        inside = si.is_valid() & (dr.dot(si.sh_frame.n, d) > 0) & ((flags & back_side) == 0)
-        hit = np.asarray(dr.select(inside, 1.0, 0.0).numpy(), np.float64).reshape(b - a, s)
-        out[a:b] = hit.mean(axis=1)
+        inside = _buried(mi_scene, to_vector3(points[a:b].reshape(-1, 3)), to_vector3(normals[a:b].reshape(-1, 3)),
+                         offset)
+        out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), s).numpy(), np.float64) / s
     return out
+
+
+def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: int, offset: float) -> np.ndarray:
+    """(M,) ``buried_fraction`` of triangle nodes ids from ``count`` stratified points on
+    each (a Hammersley set shifted per node, on the true surface of curved patches), made
+    and counted in the wave: only the shares come back."""
+    m = len(ids)
+    out = np.zeros(m)
+    per_launch = max(1, MAX_LANES // max(count, 1))
+    for a in range(0, m, per_launch):
+        b = min(m, a + per_launch)
+        lane = dr.arange(mi.UInt32, (b - a) * count)
+        node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
+        key = hash_u32(node ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995))
+        y, n, _ = source_point(buf, node, lane % count, count, key)
+        inside = _buried(mi_scene, y, n, offset)
+        out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
+    return out
+
+
+def _buried(mi_scene, p, d, offset: float):
+    """mi.Bool: points p (normals d) whose ray along the normal first meets the back of a
+    one-sided surface."""
+    ray = mi.Ray3f(p + d * offset, d)
+    si = mi_scene.ray_intersect(ray)
+    flags = si.bsdf(ray).flags()
+    # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
+    # geometric normal si.n points the other way)
+    return si.is_valid() & (dr.dot(si.sh_frame.n, d) > 0) & ((flags & int(mi.BSDFFlags.BackSide)) == 0)
