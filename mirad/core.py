@@ -1004,12 +1004,14 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
     src_own = pair_src[mine]
+    # (one pair per column: by columns, the product runs over the pairs once for all channels)
+    gather_own_csc = gather_own.tocsc()
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
         b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        hl = (gather_own @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), -1))
+        hl = gather_own_csc @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), -1)
         hl = hl.reshape(len(fit_leaves), k_count, channels)
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
