@@ -1011,7 +1011,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         channels = b_leaf.shape[1]
         b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        hl = gather_own_csc @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), -1)
+        hl = gather_own_csc @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), k_count * channels)
         hl = hl.reshape(len(fit_leaves), k_count, channels)
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
@@ -1019,7 +1019,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         spread = np.matmul(design_t, hl[fit_row]) - design_sum[:, :, None] * mean[fit_row][:, None, :]
         per = design_sum[:, :, None] * (b_leaf[fit_pos] * inv_seen[:, None])[:, None, :] + \
             rho_fit[:, None, :] * spread                                        # (P, 3, C)
-        rhs = (to_source @ per.reshape(len(own_s), -1)).reshape(len(sources), 3, channels)
+        rhs = (to_source @ per.reshape(len(own_s), 3 * channels)).reshape(len(sources), 3, channels)
         coef = np.einsum("sij,sjc->sic", inverse, rhs)      # [B at origin, dB/du, dB/dv] per channel
         dh = np.einsum("mi,mic->mc", mu, coef[s_pos, 1:])
         # (on the receiver node: a leaf, or a face cluster whose leaves all take it)

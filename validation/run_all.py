@@ -89,16 +89,18 @@ def where_time_goes(result) -> str:
         return "mirad produced no solution within the budget."
     best = min(result.mirad, key=lambda r: r["l1"])
     ph = best["phases"]
-    parts = [f"{k} {ph[k]:.1f} s" for k in ("link", "refine", "visibility", "solve", "direct")
-             if isinstance(ph.get(k), (int, float)) and ph[k] > 0]
+    # (the hierarchical core names its Dr.Jit waves "transfer" and repeats them as "visibility",
+    # the legacy core's name for its own)
+    waves = "transfer" if "transfer" in ph else "visibility"
+    parts = [f"{k} {v:.2f} s" for k, v in ph.items()
+             if k not in ("total", "visibility" if waves == "transfer" else "") and isinstance(v, (int, float)) and v > 0]
     total = ph.get("total")
     links_per_leaf = (best["links"] or 0) / max(best["leaves"] or 1, 1)
     return (f"mirad's most accurate point (tolerance {best['tolerance']:g}: {percent(best['l1'])} L1 in "
             f"{best['seconds']:.1f} s wall clock, solver total {total:.1f} s) has phase timings "
-            f"(`sol.stats['seconds']`) {', '.join(parts) or 'none'}; 'visibility' counts every link-evaluation "
-            f"wave (the initial linking's and those inside 'refine'); {best['leaves'] or 0:,} leaves, "
-            f"{best['links'] or 0:,} links ({links_per_leaf:.0f} per leaf: links sit on receiver leaves, so each "
-            f"leaf holds its own cut of the sources), {best['rays'] or 0:,} rays."
+            f"(`sol.stats['seconds']`) {', '.join(parts) or 'none'}; '{waves}' counts every Dr.Jit wave that "
+            f"evaluates links or gathered pairs (the rays and their form factors); {best['leaves'] or 0:,} leaves, "
+            f"{best['links'] or 0:,} links ({links_per_leaf:.0f} per leaf), {best['rays'] or 0:,} rays."
             if isinstance(total, (int, float)) else f"phase timings: {', '.join(parts)}")
 
 
