@@ -315,7 +315,9 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         dec = choose(nodes, part, rec, src_term, eps, state.min_area)
         if not dec.any:
             break
-        growth = 2 * int(dec.split_src.sum() + dec.split_recv.sum()) + int(dec.more_rays.sum())
+        # (a split link gives way to one per child: up to four for a triangle not yet split)
+        ends = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
+        growth = int((np.where(nodes.children[ends, 0] >= 0, (nodes.children[ends] >= 0).sum(axis=1), 4) - 1).sum())
         if len(links) + growth > max_links:
             capped = True
             break

@@ -56,7 +56,7 @@ import scipy.sparse as sp
 
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
-from .transfer import PointTransfers
+from .transfer import PointTransfers, pattern_size
 
 #: What the tolerance bounds: the error of the "irradiance" H (so of absorbed and reflected
 #: light alike) or of the reflected radiosity B - E only ("radiosity").
@@ -224,8 +224,30 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     f = (w * mean).sum(axis=1)
     pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
     n = RECEIVER_POINTS * rays.astype(np.float64)
-    std = np.sqrt(pooled * (w * w).sum(axis=1) / rays.astype(np.float64))
+    std = np.sqrt(pooled * shared_target_weight(w, rays))
     return np.maximum(std, unoccluded / n)
+
+
+def shared_target_weight(w: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(M,) sum_t c_t^2: what turns one sample's variance into that of a link's transfer,
+    with c_t = sum_i w_i n_it / R the weight of the link's target point t (of
+    ``transfer.pattern_size(R)``) and n_it how many of point i's R rays aim at it
+    (``transfer._kernel``: t = key + 7 i + step j). The points' rays share the link's
+    targets; were the samples independent this would be sum_i w_i^2 / R, which targets drawn
+    by several points' rays exceed (four rays a point: 28 rays on 16 targets)."""
+    out = np.zeros(len(w))
+    k = w.shape[1]
+    for r in np.unique(rays):
+        r = int(r)
+        pattern = pattern_size(r)
+        step = 2 * (r // 2) + 1 if r < pattern else 1
+        target = (7 * np.arange(k)[:, None] + step * np.arange(r)[None, :]) % pattern       # (K, R)
+        uses = np.zeros((k, pattern))
+        np.add.at(uses, (np.repeat(np.arange(k), r), target.ravel()), 1.0)
+        idx = np.flatnonzero(rays == r)
+        c = w[idx] @ uses / r
+        out[idx] = (c * c).sum(axis=1)
+    return out
 
 
 def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
