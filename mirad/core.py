@@ -43,7 +43,7 @@ from .scene import Scene
 from .errors import SettingsError
 from .settings import Settings, shape_patterns
 from .transfer import NodeBuffers, buried_fraction, buried_share, evaluate, point_to_polygon_dr, reverse_form_factor
-from .arrays import RAY_OFFSET, channel_max, to_vector3
+from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
 
@@ -786,7 +786,7 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     # needed a pseudo-inverse, an SVD per receiver)
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
     t1 = axis - np.einsum("mc,mc->m", axis, normal)[:, None] * normal
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t1 /= row_norm(t1)[:, None]
     t2 = np.cross(normal, t1)
     uv = np.stack([np.einsum("mkc,mc->mk", d, t1), np.einsum("mkc,mc->mk", d, t2)], axis=2) / size[:, None, None]
     design = np.concatenate([np.ones(d.shape[:2] + (1,)), uv], axis=2)                       # (U, K, 3)
@@ -947,7 +947,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     normal = nodes.normal[sources]
     axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
     t1 = axis - np.einsum("sc,sc->s", axis, normal)[:, None] * normal
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t1 /= row_norm(t1)[:, None]
     t2 = np.cross(normal, t1)
     origin = poly.mean(axis=1)
     # (in units of the source's radius: the fit is the same for the same geometry in any units)
@@ -1120,7 +1120,7 @@ def kernel_log_gradient(nodes: Nodes, recv: np.ndarray, at: np.ndarray, reach: n
     facing = np.einsum("mc,mc->m", nx, d)
     grad = nx / np.where(facing > 0, facing, 1.0)[:, None] - 4.0 * d / np.maximum(
         np.einsum("mc,mc->m", d, d), 1e-300)[:, None]
-    length = np.linalg.norm(grad, axis=1) * reach
+    length = row_norm(grad) * reach
     return grad * (np.where(facing > 0, 1.0, 0.0) / np.maximum(length, 1.0))[:, None]
 
 

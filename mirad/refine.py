@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .arrays import row_norm
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
 from .transfer import PointTransfers, pattern_size
@@ -254,14 +255,14 @@ def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray
     """(M,) the kernel's relative change across each source seen from its receiver, min(1,
     2 R_s / d) over the distance d between their centres: what turns a source's radiosity
     deviation into a transfer error (the source term)."""
-    dist = np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1)
+    dist = row_norm(nodes.center[recv] - nodes.center[src])
     return np.minimum(1.0, 2.0 * nodes.radius[src] / np.maximum(dist, 1e-300))
 
 
 def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) m: from each receiver's centre to the nearest point of its source's bounding
     sphere (0 inside it)."""
-    return np.maximum(np.linalg.norm(nodes.center[recv] - nodes.center[src], axis=1) - nodes.radius[src], 0.0)
+    return np.maximum(row_norm(nodes.center[recv] - nodes.center[src]) - nodes.radius[src], 0.0)
 
 
 def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
