@@ -994,7 +994,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved_area = nodes.area[r]
 
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
-    k_count = own_points.shape[1]
     weighted_design = wts[:, :, None] * design                 # (P, K, 3)
     design_sum = weighted_design.sum(axis=1)                   # (P, 3)
     design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))
@@ -1006,15 +1005,15 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
     src_own = pair_src[mine]
-    # (one pair per column: by columns, the product runs over the pairs once for all channels)
+    # (one pair per column: by columns, the product runs over the pairs once)
     gather_own_csc = gather_own.tocsc()
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
         b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        hl = gather_own_csc @ (own_points[:, :, None] * b_own[:, None, :]).reshape(len(src_own), k_count * channels)
-        hl = hl.reshape(len(fit_leaves), k_count, channels)
+        # (a channel at a time: the pairs' (M'', K) values are the largest array here)
+        hl = np.stack([gather_own_csc @ (own_points * b_own[:, ch, None]) for ch in range(channels)], axis=2)
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
