@@ -12,8 +12,8 @@ from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "shadow_ray_length", "to_float", "to_uint", "to_vector3", "to_point3", "scene_diagonal",
-           "group_sum", "group_mean", "channel_max"]
+__all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "shadow_ray_length", "row_norm", "to_float", "to_uint",
+           "to_vector3", "to_point3", "scene_diagonal", "group_sum", "group_mean", "channel_max"]
 
 #: Largest number of lanes in one Dr.Jit launch (bounds the memory of a wave).
 MAX_LANES = 1 << 22

@@ -38,7 +38,7 @@ from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIA
                     build_nodes, split_triangles)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
-                     refinement_threshold, unresolved, volume_transfer_std)
+                     refinement_threshold, unresolved, visible_fraction, volume_transfer_std)
 from .scene import Scene
 from .errors import SettingsError
 from .settings import Settings, shape_patterns
@@ -715,7 +715,7 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
     b = channel_max(solved.b_node[src])
-    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    vis = visible_fraction(ff, ff_unocc)
     vol = nodes.kind[src] == VOLUME
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & ~vol
     var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
@@ -968,8 +968,9 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     row_of = np.full(n, -1, np.int64)
     row_of[fit_leaves] = np.arange(len(fit_leaves))
     mine = np.flatnonzero(row_of[pair_node] >= 0)
-    # (F, M''): each fitted leaf's own pairs, summed
-    gather_own = sp.csr_matrix((np.ones(len(mine)), (row_of[pair_node[mine]], np.arange(len(mine)))),
+    # (F, M''): each fitted leaf's own pairs, summed (one pair per column: by columns, the
+    # product runs over the pairs once)
+    gather_own = sp.csc_matrix((np.ones(len(mine)), (row_of[pair_node[mine]], np.arange(len(mine)))),
                                shape=(len(fit_leaves), len(mine)))
     own_points = points[mine].astype(np.float64)
     fit_pos = leaf_pos[leaf_nodes]
@@ -1005,15 +1006,13 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
     src_own = pair_src[mine]
-    # (one pair per column: by columns, the product runs over the pairs once)
-    gather_own_csc = gather_own.tocsc()
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
         b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
         # (a channel at a time: the pairs' (M'', K) values are the largest array here)
-        hl = np.stack([gather_own_csc @ (own_points * b_own[:, ch, None]) for ch in range(channels)], axis=2)
+        hl = np.stack([gather_own @ (own_points * b_own[:, ch, None]) for ch in range(channels)], axis=2)
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1172,7 +1171,7 @@ def first_rays(state: State, links: Links, node: np.ndarray, src: np.ndarray, li
     ``rays`` (M,) elsewhere. Decided before the pair's own rays, from rays independent of them."""
     ff = links.ff[link].astype(np.float64)
     unocc = links.ff_unocc[link].astype(np.float64)
-    vis = np.where(unocc > 0, ff / np.where(unocc > 0, unocc, 1.0), 1.0)
+    vis = visible_fraction(ff, unocc)
     b = b_src[src]
     var_one = (unocc * b) ** 2 * vis * (1.0 - vis) / RECEIVER_POINTS
     allowed = gather_allowance(ff, b, h_node[node], tolerance)

@@ -57,7 +57,7 @@ import scipy.sparse as sp
 from .arrays import row_norm
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
-from .transfer import PointTransfers, pattern_size
+from .transfer import PointTransfers, pattern_size, ray_target
 
 #: What the tolerance bounds: the error of the "irradiance" H (so of absorbed and reflected
 #: light alike) or of the reflected radiosity B - E only ("radiosity").
@@ -129,7 +129,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     gv = pt.gv.astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
-    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    vis = visible_fraction(ff, ff_unocc)
     face_recv = nodes.kind[recv] == FACE
     # triangles: the 7-point degree-5 rule against the degree-2 rule on its six outer points
     # (EMBEDDED_WEIGHTS). Their difference is about the degree-2 rule's error C (h/d)^3 for a
@@ -182,6 +182,12 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
                  rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))
 
 
+def visible_fraction(ff: np.ndarray, ff_unocc: np.ndarray) -> np.ndarray:
+    """(M,) a transfer's visibility: its form factor over the unoccluded one (1 where the
+    unoccluded one is 0)."""
+    return np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+
+
 def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) bool: links whose source is smaller than their receiver and nearer to the
     receiver's surface than the receiver's radius: the light it brings peaks on a spot about
@@ -207,7 +213,7 @@ def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.nda
     the receiver's points miss a near source's spot, the two disagree."""
     other = nodes.area[src] / np.maximum(nodes.area[recv], 1e-300) * (nodes.recv_w[src] * reverse).sum(axis=1)
     ff_unocc = np.asarray(ff_unocc, np.float64)
-    vis = np.where(ff_unocc > 0, ff / np.where(ff_unocc > 0, ff_unocc, 1.0), 1.0)
+    vis = visible_fraction(ff, ff_unocc)
     return np.abs(ff_unocc - other) * vis
 
 
@@ -233,17 +239,15 @@ def shared_target_weight(w: np.ndarray, rays: np.ndarray) -> np.ndarray:
     """(M,) sum_t c_t^2: what turns one sample's variance into that of a link's transfer,
     with c_t = sum_i w_i n_it / R the weight of the link's target point t (of
     ``transfer.pattern_size(R)``) and n_it how many of point i's R rays aim at it
-    (``transfer._kernel``: t = key + 7 i + step j). The points' rays share the link's
-    targets; were the samples independent this would be sum_i w_i^2 / R, which targets drawn
-    by several points' rays exceed (four rays a point: 28 rays on 16 targets)."""
+    (``transfer.ray_target``). The points' rays share the link's targets; were the samples
+    independent this would be sum_i w_i^2 / R, which targets drawn by several points' rays
+    exceed (four rays a point: 28 rays on 16 targets)."""
     out = np.zeros(len(w))
     k = w.shape[1]
     for r in np.unique(rays):
         r = int(r)
-        pattern = pattern_size(r)
-        step = 2 * (r // 2) + 1 if r < pattern else 1
-        target = (7 * np.arange(k)[:, None] + step * np.arange(r)[None, :]) % pattern       # (K, R)
-        uses = np.zeros((k, pattern))
+        target = ray_target(np.arange(k)[:, None], np.arange(r)[None, :], r)               # (K, R)
+        uses = np.zeros((k, pattern_size(r)))
         np.add.at(uses, (np.repeat(np.arange(k), r), target.ravel()), 1.0)
         idx = np.flatnonzero(rays == r)
         c = w[idx] @ uses / r

@@ -199,8 +199,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     # --- shadow ray to one of the source's stratified points -------------------------------
     key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
     pattern = pattern_size(r_count)
-    step = 2 * (r_count // 2) + 1 if r_count < pattern else 1
-    t = (key + i * 7 + j * step) % pattern
+    t = ray_target(i, j, r_count, key)
     y, ny, tri = source_point(buf, s, t, pattern, key)
     # a volume cluster: the exact form factor of the triangle the point is on, over the
     # probability of drawing it (its share of the cluster's area): unbiased, and bounded by
@@ -266,6 +265,16 @@ def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v):
 def pattern_size(rays_per_point: int) -> int:
     """Points in the set a link's rays aim at: SOURCE_POINTS, or one per ray of a point."""
     return max(SOURCE_POINTS, int(rays_per_point))
+
+
+def ray_target(i, j, rays_per_point: int, key=0):
+    """Which of a link's ``pattern_size`` target points ray j of its receiver point i aims at
+    (i, j, key: ints, numpy or Dr.Jit arrays; ``key`` the link's hash, which only shifts the
+    set): the points' rays spread over the targets with an odd step, so that a point's R rays
+    are R different targets (``refine.shared_target_weight`` counts how the points share them)."""
+    pattern = pattern_size(rays_per_point)
+    step = 2 * (rays_per_point // 2) + 1 if rays_per_point < pattern else 1
+    return (key + i * 7 + j * step) % pattern
 
 
 def source_point(buf: NodeBuffers, s, t, pattern: int, key):
