@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from tqdm.auto import tqdm
 
-from . import _runtime  # noqa: F401
+from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
 from .oracle import choose_splits, transfer_bounds
@@ -390,7 +390,13 @@ def _facing_pair_count(prob) -> int:
 
 
 def solve_problem(scene: Scene, settings: Settings):
-    """Run hierarchical radiosity on a loaded scene; returns a Solution."""
+    """Run hierarchical radiosity on a loaded scene; returns a Solution. Its kernels are
+    compiled without fast math (``_runtime.exact_arithmetic``)."""
+    with exact_arithmetic():
+        return _solve_problem(scene, settings)
+
+
+def _solve_problem(scene: Scene, settings: Settings):
     from .solution import Solution
 
     max_links = settings.max_links or _memory_max_links()
