@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
+from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import EnvironmentProblem, SettingsError
 
 __all__ = ["DaskEvaluator", "check_main_guard", "unguarded_main_line", "chunk_seed"]
@@ -249,9 +249,8 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
     cl_token, cl_arrays = cl_payload
     geo = _cached("g" + geo_token, lambda: _upload_geometry(_assemble(geo_payload)))
     clusters = _cached("c" + cl_token, lambda: _upload_clusters(cl_arrays))
-    with exact_arithmetic():
-        wave = evaluate_links(scene.mi_scene, geo, recv, src, samples=samples, seed=seed, clusters=clusters,
-                              vclass=vclass)
+    wave = evaluate_links(scene.mi_scene, geo, recv, src, samples=samples, seed=seed, clusters=clusters,
+                          vclass=vclass)
     return tuple(getattr(wave, f) for f in LinkWave.FIELDS), wave.rays
 
 
@@ -263,8 +262,7 @@ def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: in
     scene = _worker_scene(key)
     token = nodes_payload[-1][0]
     buffers = _cached("h" + token, lambda: NodeBuffers.upload(_NodeArrays(_assemble(nodes_payload))))
-    with exact_arithmetic():
-        pt = evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point, seed=seed, offset=offset)
+    pt = evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point, seed=seed, offset=offset)
     return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _runtime  # noqa: F401
+from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .nodes import RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children
 from .arrays import MAX_LANES, shadow_ray_length, to_float, to_uint, to_vector3
 from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
@@ -119,11 +119,13 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
     rays = 0
     per_launch = max(1, MAX_LANES // (k * rays_per_point))
-    for a in range(0, m, per_launch):
-        b = min(m, a + per_launch)
-        g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed,
-                                                        offset, periodic)
-        rays += ra
+    # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
+    with exact_arithmetic():
+        for a in range(0, m, per_launch):
+            b = min(m, a + per_launch)
+            g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point,
+                                                            seed, offset, periodic)
+            rays += ra
     return PointTransfers(g, gv, gp, g2, rays)
 
 

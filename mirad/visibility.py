@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _runtime  # noqa: F401
+from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_vector3
 from .formfactor import point_to_triangle_dr
 
@@ -197,12 +197,14 @@ def _in_launches(kernel, recv, src, vclass, samples: int) -> LinkWave:
     out = [np.zeros(m, np.float64) for _ in LinkWave.FIELDS]
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
-    for start in range(0, m, per_launch):
-        stop = min(m, start + per_launch)
-        res = kernel(recv[start:stop], src[start:stop], vclass[start:stop])
-        for o, r in zip(out, res[:-1]):
-            o[start:stop] = r
-        rays += res[-1]
+    # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
+    with exact_arithmetic():
+        for start in range(0, m, per_launch):
+            stop = min(m, start + per_launch)
+            res = kernel(recv[start:stop], src[start:stop], vclass[start:stop])
+            for o, r in zip(out, res[:-1]):
+                o[start:stop] = r
+            rays += res[-1]
     return LinkWave(*(o.astype(np.float32) for o in out), rays)
 
 
