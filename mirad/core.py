@@ -1448,9 +1448,14 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                                                         [p[3] for p in smooth_parts]), minlength=n)
     # and the error of taking each source's mean, as refinement's source term at the level
     # the transfer now has (its children's deviation times the kernel's change across it, or
-    # that change squared where linear_sources sends the source's gradient: mean_error_order)
-    src_err_node = np.bincount(recv, minlength=n, weights=ff * b_src[srcs] * varies[srcs] *
-                               mean_error_order(nodes, recv, srcs, fitted))
+    # that change squared where linear_sources sends the source's gradient: mean_error_order).
+    # The transfers on one leaf err each by its own source's geometry, as the source splits
+    # above allow them (``uneven``): their errors add in quadrature, as the noise's do. (Summed
+    # as if all of one sign they were 4-9 times the error that splitting every gathered source
+    # down to its triangles removed: fine box at 0.1 1.53 % for 0.40 %, the 36-triangle box
+    # 1.55 % for 0.17 %.)
+    src_error = ff * b_src[srcs] * varies[srcs] * mean_error_order(nodes, recv, srcs, fitted)
+    src_var_node = np.bincount(recv, minlength=n, weights=src_error * src_error)
     to_leaves = ancestor_matrix(nodes, final_leaves)
     var = to_leaves @ var_node
     # the system again, with every link on an inner node replaced by its leaves' own
@@ -1497,7 +1502,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     rho = channel_max(state.patch_rho[nodes.patch[final_leaves]])
     weight = (rho if ERRORS_OF == "radiosity" else 1.0) * nodes.area[final_leaves]
     noise = EXPECTED_ABS * weight * np.sqrt(var)
-    source_power = weight * (to_leaves @ src_err_node)
+    source_power = EXPECTED_ABS * weight * np.sqrt(to_leaves @ src_var_node)
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time - \
         (state.timing["direct"] - direct_before)
