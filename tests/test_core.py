@@ -68,18 +68,25 @@ def test_deterministic():
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
 
 
-def _tessellated_furnace(tmp_path, n: int, rho: float) -> dict:
-    """The closed furnace cube with every face an n x n grid of squares (2 n^2 triangles):
-    its face clusters are the median-split pieces of the grids, some of them not rectangles."""
-    import mitsuba as mi
-    import trimesh
-
+def _square_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ((n + 1)^2, 3) and triangles (2 n^2, 3) of the square [-1, 1]^2 at z = 0 as an
+    n x n grid of squares, each cut into two triangles."""
     i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
     verts = np.stack([-1 + 2 * i.ravel() / n, -1 + 2 * j.ravel() / n, np.zeros((n + 1) ** 2)], 1)
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     v00, v10, v11, v01 = (a * (n + 1) + b).ravel(), ((a + 1) * (n + 1) + b).ravel(), \
         ((a + 1) * (n + 1) + b + 1).ravel(), (a * (n + 1) + b + 1).ravel()
     faces = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    return verts, faces
+
+
+def _tessellated_furnace(tmp_path, n: int, rho: float) -> dict:
+    """The closed furnace cube with every face an n x n grid of squares (2 n^2 triangles):
+    its face clusters are the median-split pieces of the grids, some of them not rectangles."""
+    import mitsuba as mi
+    import trimesh
+
+    verts, faces = _square_grid(n)
     path = tmp_path / "grid.ply"
     trimesh.Trimesh(verts, faces, process=False).export(path)
     T = mi.ScalarTransform4f
@@ -190,12 +197,7 @@ def _floor_under_a_square_light(tmp_path, n: int, height: float, half: float) ->
     import trimesh
     from mirad.nodes import DUNAVANT7_BARY, DUNAVANT7_WEIGHT
 
-    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-    verts = np.stack([-1 + 2 * i.ravel() / n, -1 + 2 * j.ravel() / n, np.zeros((n + 1) ** 2)], 1)
-    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    v00, v10, v11, v01 = (a * (n + 1) + b).ravel(), ((a + 1) * (n + 1) + b).ravel(), \
-        ((a + 1) * (n + 1) + b + 1).ravel(), (a * (n + 1) + b + 1).ravel()
-    faces = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    verts, faces = _square_grid(n)
     trimesh.Trimesh(verts, faces, process=False).export(tmp_path / "floor.ply")
     T = mi.ScalarTransform4f
     centre = np.array([0.3, 0.2, height])
