@@ -678,10 +678,11 @@ GATHER_CHUNK = 1 << 18
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair
 #: whose visibility noise exceeds its share of the tolerance gets more (up to GATHER_MAX_RAYS).
 GATHER_RAYS = 4
-# smooth links' light read at the leaves from a quadratic through the receiver's points
-# (``curved_field``), not the plane; below this smallest eigenvalue of the fit's normal
-# equations over their trace the points leave the quadratic undetermined and the plane stays
+#: Smooth links' light read at the leaves from a quadratic through the receiver's points
+#: (``curved_field``), not the plane.
 CURVED_FITS = True
+#: Below this smallest eigenvalue of the quadratic's normal equations over their trace (in the
+#: receiver's dimensionless coordinates) the points leave it undetermined: the plane stays.
 CURVED_CONDITION = 1e-8
 GATHER_MAX_RAYS = SOURCE_POINTS
 #: Share of the tolerance that interpolating a smooth link over a face cluster may cost,
@@ -863,8 +864,7 @@ def curved_field(nodes: Nodes, recv: np.ndarray, values: np.ndarray, plane_at_po
     coef = np.einsum("mjk,mk->mj", fit[inverse], values)                      # (M, 6)
     row = inverse[owner]
     quad = np.einsum("pj,pj->p", frame.design(at[:, None], quadratic=True, rows=row)[:, 0], coef[owner])
-    # (the curvature's correction to the plane stays within the values' own range: a quadratic
-    # read beyond the points, at a receiver's rim, may not run off where the field turns)
+    # (the curvature's correction stays within the plane's largest miss at the points)
     miss = np.abs(values - plane_at_points).max(axis=1)[owner]
     quad = linear + np.clip(quad - linear, -miss, miss)
     good = regular[row]
@@ -1326,12 +1326,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         leaf, owner = _leaf_positions_below(below, recv[ok])
         k = ok[owner]
         # (a leaf's buried part, inside closed geometry, gets no light)
-        linear = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
+        field = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
         if CURVED_FITS:
             plane = a[ok][:, None] + np.einsum("mc,mkc->mk", grad[ok], nodes.recv_pts[recv[ok]] - x0[ok][:, None])
-            linear = curved_field(nodes, recv[ok], gv[ok].astype(np.float64), plane, owner, centroid[leaf],
-                                  nodes.area[leaves[leaf]], linear)
-        value = linear * (1.0 - state.buried[leaves[leaf]])
+            field = curved_field(nodes, recv[ok], gv[ok].astype(np.float64), plane, owner, centroid[leaf],
+                                 nodes.area[leaves[leaf]], field)
+        value = field * (1.0 - state.buried[leaves[leaf]])
         # the fit's residual is the interpolation's error, counted like visibility noise
         smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
         smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1)))
@@ -1451,10 +1451,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # that change squared where linear_sources sends the source's gradient: mean_error_order).
     # The transfers on one leaf err each by its own source's geometry, as the source splits
     # above allow them (``uneven``): their errors, each at the size refinement gives it, add in
-    # quadrature, as the noise's do. (Summed
-    # as if all of one sign they were 4-9 times the error that splitting every gathered source
-    # down to its triangles removed: fine box at 0.1 1.53 % for 0.40 %, the 36-triangle box
-    # 1.55 % for 0.17 %.)
+    # quadrature, as the noise's do. (Summed as if all of one sign they were 4-9 times the error
+    # that splitting every gathered source down to its triangles removed: fine box at 0.1
+    # 1.53 % for 0.40 %, the 36-triangle box 1.55 % for 0.17 %.)
     src_error = ff * b_src[srcs] * varies[srcs] * mean_error_order(nodes, recv, srcs, fitted)
     src_var_node = np.bincount(recv, minlength=n, weights=src_error * src_error)
     to_leaves = ancestor_matrix(nodes, final_leaves)
