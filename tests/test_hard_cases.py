@@ -270,6 +270,25 @@ def test_closed_dark_side_of_a_piercing_wall_stays_dark(tmp_path):
     assert dark_mean < 0.01 * lit_mean, f"dark side {dark_mean:.4g} vs lit {lit_mean:.4g} W/m^2"
 
 
+def test_no_fit_carries_light_across_a_wall_that_pierces_the_floor():
+    """The shipped wall-pierce scene: its floor cells straddle the partition (x = 2 mid-cell).
+    The final gather fitted the lamp's light over a floor face cluster from points that all lay
+    on the lit side, and read the fit at leaves beyond the partition: at tolerance 0.05 the
+    straddling cells read up to 16 % above the path tracer (65,536 paths over the 16 cells).
+    A fit may not cross a surface that crosses its receiver (``core.crossed_leaves``): none
+    above 5 %. (They still read 3-12 % low, and at tolerance 0.1 up to 18 % high: light leaks
+    under the wall by other ways too, see the xfail above.)"""
+    scene = mirad.load_scene(SCENES / "wall-pierce" / "scene.xml")
+    tv = scene.tri_vertices
+    floor = scene.tri_shape == scene.shape_index("floor")
+    cells = np.flatnonzero(floor & (tv[:, :, 0].min(1) < 2.0) & (tv[:, :, 0].max(1) > 2.0))
+    assert len(cells) == 16
+    ref = triangle_reference(scene, samples_per_triangle=1 << 14, seed=3, triangles=cells)
+    sol = mirad.solve(scene, tolerance=0.05, core="hierarchical", quiet=True)
+    rel = sol.triangle_radiosity[cells, 0] / ref.radiosity[:, 0] - 1
+    assert rel.max() <= 0.05, np.round(rel, 3)
+
+
 # --- 8. thin two-sided surfaces ------------------------------------------------------------------
 
 def test_each_side_of_a_two_sided_sheet_gets_its_own_radiosity(tmp_path, sheet_solution):
