@@ -909,16 +909,15 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
 def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centroid: np.ndarray, recv: np.ndarray,
                    leaf: np.ndarray, owner: np.ndarray) -> np.ndarray:
     """(P,) bool: the leaves (positions ``leaf`` (P,) in ``leaves`` (L,), their centroids
-    ``centroid`` (L, 3)) below
-    receivers recv[owner] (recv (M,), ``_leaf_positions_below``'s rows) that another surface
-    separates from the centre of their receiver's points: a wall that pierces a floor, or
-    stands on it. Points all on one side say nothing of the other: on wall-pierce a fit through
-    the floor cluster's points, which all saw the lamp, was read at leaves beyond the partition
-    (the floor cells it crosses 11-16 % high at tolerance 0.05; a leaf mostly behind it read
-    H 1.21 W/m^2 where its own points read 0.17). One ray per receiver and leaf below it, along
-    the surface, above its own triangles' corners (a floor jittered by 0.1 mm was "crossed"
-    everywhere along a segment lifted by the ray offset alone): on the furnished room about
-    1.5 % of the fitted leaves are so separated."""
+    ``centroid`` (L, 3)) below receivers recv[owner] (recv (M,), ``_leaf_positions_below``'s
+    rows) that another surface separates from the centre of their receiver's points: a wall
+    that pierces a floor, or stands on it. Points all on one side say nothing of the other: on
+    wall-pierce a fit through the floor cluster's points, which all saw the lamp, was read at
+    leaves beyond the partition (the floor cells it crosses 11-16 % high at tolerance 0.05; a
+    leaf mostly behind it read H 1.21 W/m^2 where its own points read 0.17). One ray per
+    receiver and leaf below it, along the surface, above its own triangles' corners (a floor
+    jittered by 0.1 mm was "crossed" everywhere along a segment lifted by the ray offset
+    alone): on the furnished room about 1.5 % of the fitted leaves are so separated."""
     nodes = state.nodes
     ids, inverse = np.unique(recv, return_inverse=True)
     u_leaf, u_owner = _leaf_positions_below(below, ids)
@@ -1361,7 +1360,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         k = ok[owner]
         # (a leaf that a surface separates from the receiver's points takes the link at its own
         # points: the fit would carry the light across that surface)
-        across = crossed_leaves(state, below, leaves, centroid, recv[ok], leaf, owner) & (state.buried[leaves[leaf]] < 1.0)
+        across = crossed_leaves(state, below, leaves, centroid, recv[ok], leaf, owner) & \
+            (state.buried[leaves[leaf]] < 1.0)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
             leaf, owner, k = leaf[~across], owner[~across], k[~across]
