@@ -800,6 +800,15 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     return frame.x0[inverse], coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
 
 
+def tangents(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (M, 3) each of the planes with unit normals (M, 3): the first along
+    the axis the normal leans least towards, less its normal part; the second normal x first."""
+    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
+    t1 = axis - np.einsum("mc,mc->m", axis, normal)[:, None] * normal
+    t1 /= row_norm(t1)[:, None]
+    return t1, np.cross(normal, t1)
+
+
 @dataclass
 class _PlaneFrame:
     """In-plane coordinates over receivers (U,): origin x0 (U, 3), tangents t1, t2 (U, 3) and
@@ -814,12 +823,9 @@ class _PlaneFrame:
     def of(cls, nodes: Nodes, ids: np.ndarray, w: np.ndarray) -> "_PlaneFrame":
         """The frame of nodes ids (U,) at the mean of their receiver points weighted by w (U, K)."""
         x0 = np.einsum("mk,mkc->mc", w, nodes.recv_pts[ids].astype(np.float64))
-        normal = nodes.normal[ids]
-        axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
-        t1 = axis - np.einsum("mc,mc->m", axis, normal)[:, None] * normal
-        t1 /= row_norm(t1)[:, None]
+        t1, t2 = tangents(nodes.normal[ids])
         size = nodes.radius[ids]
-        return cls(x0, t1, np.cross(normal, t1), np.where(size > 0, size, 1.0))
+        return cls(x0, t1, t2, np.where(size > 0, size, 1.0))
 
     def design(self, x: np.ndarray, *, quadratic: bool, rows: np.ndarray | None = None) -> np.ndarray:
         """(M, P, 3) or (M, P, 6): [1 u v] or [1 u v u^2 uv v^2] at points x (M, P, 3), each row
@@ -907,10 +913,11 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
 
 
 def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centroid: np.ndarray, recv: np.ndarray,
-                   leaf: np.ndarray, owner: np.ndarray) -> np.ndarray:
+                   x0: np.ndarray, leaf: np.ndarray, owner: np.ndarray) -> np.ndarray:
     """(P,) bool: the leaves (positions ``leaf`` (P,) in ``leaves`` (L,), their centroids
     ``centroid`` (L, 3)) below receivers recv[owner] (recv (M,), ``_leaf_positions_below``'s
-    rows) that another surface separates from the centre of their receiver's points: a wall
+    rows) that another surface separates from the centre x0 (M, 3) of their receiver's points
+    (``linear_fit``'s, weighted): a wall
     that pierces a floor, or stands on it. Points all on one side say nothing of the other: on
     wall-pierce a fit through the floor cluster's points, which all saw the lamp, was read at
     leaves beyond the partition (the floor cells it crosses 11-16 % high at tolerance 0.05; a
@@ -919,11 +926,9 @@ def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centr
     jittered by 0.1 mm was "crossed" everywhere along a segment lifted by the ray offset
     alone): on the furnished room about 1.5 % of the fitted leaves are so separated."""
     nodes = state.nodes
-    ids, inverse = np.unique(recv, return_inverse=True)
+    ids, first, inverse = np.unique(recv, return_index=True, return_inverse=True)
     u_leaf, u_owner = _leaf_positions_below(below, ids)
-    w = nodes.recv_w[ids].astype(np.float64)
-    x0 = np.einsum("mk,mkc->mc", w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300),
-                   nodes.recv_pts[ids].astype(np.float64))
+    x0 = x0[first]
     normal = nodes.normal[ids][u_owner].astype(np.float64)
     # (the segment runs above the receiver's own triangles: lifted by how far their corners
     # leave its plane, a nearly coplanar cluster's bumps do not cross it)
@@ -931,7 +936,7 @@ def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centr
     height = np.zeros(len(ids))
     np.maximum.at(height, u_owner, np.abs(np.einsum("pkc,pc->pk", corners, normal)).max(axis=1))
     lift = normal * height[u_owner][:, None]
-    hit = blocked(state.scene.mi_scene, x0[u_owner] + lift, normal, centroid[u_leaf] + lift, normal, state.offset)
+    hit = blocked(state.scene.mi_scene, x0[u_owner] + lift, centroid[u_leaf] + lift, normal, state.offset)
     # each of recv's rows repeats its node's block of leaves, in the same order
     node_start = np.searchsorted(u_owner, np.arange(len(ids)))
     row_start = np.searchsorted(owner, np.arange(len(recv)))
@@ -1046,10 +1051,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     centroid_of, cov = _area_moments(nodes, leaf_nodes, own_s, len(sources))
     wts = nodes.recv_w[leaf_nodes].astype(np.float64) * (nodes.area[leaf_nodes] * (seen > 1e-9))[:, None]
     normal = nodes.normal[sources]
-    axis = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
-    t1 = axis - np.einsum("sc,sc->s", axis, normal)[:, None] * normal
-    t1 /= row_norm(t1)[:, None]
-    t2 = np.cross(normal, t1)
+    t1, t2 = tangents(normal)
     origin = poly.mean(axis=1)
     # (in units of the source's radius: the fit is the same for the same geometry in any units)
     size = np.maximum(nodes.radius[sources], 1e-300)
@@ -1360,7 +1362,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         k = ok[owner]
         # (a leaf that a surface separates from the receiver's points takes the link at its own
         # points: the fit would carry the light across that surface)
-        across = crossed_leaves(state, below, leaves, centroid, recv[ok], leaf, owner) & \
+        across = crossed_leaves(state, below, leaves, centroid, recv[ok], x0[ok], leaf, owner) & \
             (state.buried[leaves[leaf]] < 1.0)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))

@@ -341,17 +341,17 @@ def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: f
     return out
 
 
-def blocked(mi_scene, start: np.ndarray, start_normal: np.ndarray, end: np.ndarray, end_normal: np.ndarray,
-            offset: float) -> np.ndarray:
-    """(M,) bool: whether a surface lies between points start and end (M, 3) on surfaces with
-    normals start_normal and end_normal (M, 3), each end lifted ``offset`` (m) off its surface."""
+def blocked(mi_scene, start: np.ndarray, end: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """(M,) bool: whether a surface lies between points start and end (M, 3) of a surface with
+    normals ``normal`` (M, 3), both ends lifted ``offset`` (m) off it."""
     m = len(start)
     out = np.zeros(m, bool)
     with exact_arithmetic():
         for a in range(0, m, MAX_LANES):
             b = min(m, a + MAX_LANES)
-            o = to_vector3(start[a:b]) + to_vector3(start_normal[a:b]) * offset
-            d = to_vector3(end[a:b]) + to_vector3(end_normal[a:b]) * offset - o
+            lift = to_vector3(normal[a:b]) * offset
+            o = to_vector3(start[a:b]) + lift
+            d = to_vector3(end[a:b]) + lift - o
             dist = dr.norm(d)
             ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
             ray.maxt = shadow_ray_length(dist, offset)
