@@ -456,8 +456,9 @@ def _face_rectangles(surf, order, lo, hi, normal, area):
     first = surf.verts[order[lo]]
     counts = hi - lo
     owner = np.repeat(np.arange(len(lo)), counts)
-    idx = np.repeat(lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) + np.arange(counts.sum())
-    corners = surf.verts[order][idx]                        # (Q, 3, 3): every (cluster, patch) pair
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    idx = np.repeat(lo - start, counts) + np.arange(counts.sum())
+    corners = surf.verts[order[idx]]                        # (Q, 3, 3): every (cluster, patch) pair
     best = None
     for k in range(3):
         e = first[:, (k + 1) % 3] - first[:, k]
@@ -466,9 +467,9 @@ def _face_rectangles(surf, order, lo, hi, normal, area):
         a2 = np.cross(normal, a1)
         u = np.einsum("qkc,qc->qk", corners, a1[owner])
         v = np.einsum("qkc,qc->qk", corners, a2[owner])
-        box = [np.full(len(lo), np.inf), np.full(len(lo), -np.inf), np.full(len(lo), np.inf), np.full(len(lo), -np.inf)]
-        np.minimum.at(box[0], owner, u.min(axis=1)); np.maximum.at(box[1], owner, u.max(axis=1))
-        np.minimum.at(box[2], owner, v.min(axis=1)); np.maximum.at(box[3], owner, v.max(axis=1))
+        # (each cluster's pairs are one run of ``owner``: reduced per run)
+        box = [np.minimum.reduceat(u.min(axis=1), start), np.maximum.reduceat(u.max(axis=1), start),
+               np.minimum.reduceat(v.min(axis=1), start), np.maximum.reduceat(v.max(axis=1), start)]
         rect_area = (box[1] - box[0]) * (box[3] - box[2])
         if best is None:
             best = (rect_area, a1, a2, box)
