@@ -38,7 +38,7 @@ from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIA
                     build_nodes, split_triangles)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
-                     refinement_threshold, unresolved, visible_fraction, volume_transfer_std)
+                     refinement_threshold, unresolved, unseen_in_front, visible_fraction, volume_transfer_std)
 from .scene import Scene
 from .errors import SettingsError
 from .settings import Settings, shape_patterns
@@ -254,7 +254,9 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
             getattr(out, name)[idx] = getattr(part, name)
     # links whose source is too near for the receiver's points: the same transfer summed
     # over the source's points bounds what those points missed
-    near = np.flatnonzero(unresolved(state.nodes, out.recv, out.src))
+    # (and links whose receiver's points all lie behind the source while part of it is in front)
+    near = np.flatnonzero(unresolved(state.nodes, out.recv, out.src) |
+                          unseen_in_front(state.nodes, out.recv, out.src, out.ff_unocc))
     if len(near):
         reverse = reverse_form_factor(_buffers(state), out.recv[near], out.src[near], state.offset)
         out.err_ff[near] = np.maximum(out.err_ff[near], reciprocal_error(state.nodes, out.recv[near], out.src[near],

@@ -16,7 +16,9 @@ form-factor units, both from the receiver points of its wave (transfer.py):
   spread misses it too: there ``err_ff`` is at least the difference from the same
   unoccluded transfer summed over the source's own points (``reciprocal_error``, exact
   point-to-polygon form factors to the receiver, times A_s / A_r), and the final gather
-  does not interpolate such a link over the receiver.
+  does not interpolate such a link over the receiver. The same transfer from the source's
+  side measures what a receiver misses that straddles the source's plane with every point
+  behind it (``unseen_in_front``): its part in front may see the source.
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
   over the link's n rays (zero when all rays agree).
 
@@ -154,16 +156,6 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     k = RECEIVER_POINTS
     stratified = np.sqrt((step * step).sum(axis=1) / (2.0 * (k - 1)) / k)
     err = np.where(face_recv, stratified, quad)
-    # a receiver that straddles the source's plane and none of whose points saw the source:
-    # the part in front may still see it; its bounding-sphere form factor bounds the error.
-    # (Points that do see it sample the part in front like any other variation, and a
-    # source straddling the receiver's plane is clipped exactly at each point.)
-    straddle = _straddles(nodes, recv, src) & (nodes.kind[src] != VOLUME) & (ff_unocc <= 0)
-    if straddle.any():
-        k = np.flatnonzero(straddle)
-        bound = sphere_form_factor_bound(nodes.center[recv[k]], nodes.radius[recv[k]], nodes.center[src[k]],
-                                         nodes.radius[src[k]])
-        err[k] = np.maximum(err[k], np.maximum(bound - ff[k], 0.0))
     # a face-cluster source is its bounding rectangle scaled by its fill: off by about
     # F (1 - fill) from afar, but from closer than its size the rectangle's overhang (into
     # its neighbours' area) may be the nearest, brightest part: the whole F is in doubt
@@ -202,6 +194,18 @@ def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     beyond = np.maximum(across - nodes.radius[recv], 0.0)
     gap = np.maximum(np.hypot(height, beyond) - nodes.radius[src], 0.0)
     return (nodes.kind[recv] != VOLUME) & (nodes.radius[src] < nodes.radius[recv]) & (gap < nodes.radius[recv])
+
+
+def unseen_in_front(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff_unocc: np.ndarray) -> np.ndarray:
+    """(M,) bool: links whose receiver straddles the (planar) source's plane and none of whose
+    points saw the source: the receiver's part in front may still see it, which only the
+    transfer taken from the source's side tells (``reciprocal_error``). (Points that do see it
+    sample the part in front like any other variation, and a source straddling the receiver's
+    plane is clipped exactly at each point.) A bound in its place, the bounding spheres' form
+    factor, was 1 wherever one sphere held the other: a ground under a canopy straddles every
+    tilted leaf's plane, and its links to leaves its points did not see held 50 times the
+    tolerance's budget, each the ground's area times the leaf's radiosity."""
+    return _straddles(nodes, recv, src) & (nodes.kind[src] != VOLUME) & (np.asarray(ff_unocc) <= 0)
 
 
 def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.ndarray, ff_unocc: np.ndarray,
