@@ -45,6 +45,7 @@ from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, point_to_polygon_dr,
                        reverse_form_factor)
 from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
+from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
 
@@ -254,13 +255,19 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
             getattr(out, name)[idx] = getattr(part, name)
     # links whose source is too near for the receiver's points: the same transfer summed
     # over the source's points bounds what those points missed
-    # (and links whose receiver's points all lie behind the source while part of it is in front)
-    near = np.flatnonzero(unresolved(state.nodes, out.recv, out.src) |
-                          unseen_in_front(state.nodes, out.recv, out.src, out.ff_unocc))
+    # (and links whose receiver's points all lie behind the source while part of it is in front:
+    # there that transfer, which 7 source points near a small receiver can put far above what
+    # any point of it receives, is held within the bounding spheres' form factor)
+    nodes = state.nodes
+    unseen = unseen_in_front(nodes, out.recv, out.src, out.ff_unocc)
+    near = np.flatnonzero(unresolved(nodes, out.recv, out.src) | unseen)
     if len(near):
         reverse = reverse_form_factor(_buffers(state), out.recv[near], out.src[near], state.offset)
-        out.err_ff[near] = np.maximum(out.err_ff[near], reciprocal_error(state.nodes, out.recv[near], out.src[near],
-                                                                         out.ff[near], out.ff_unocc[near], reverse))
+        missed = reciprocal_error(nodes, out.recv[near], out.src[near], out.ff[near], out.ff_unocc[near], reverse)
+        r, s = out.recv[near], out.src[near]
+        bound = sphere_form_factor_bound(nodes.center[r], nodes.radius[r], nodes.center[s], nodes.radius[s])
+        missed = np.where(unseen[near], np.minimum(missed, bound), missed)
+        out.err_ff[near] = np.maximum(out.err_ff[near], missed)
     state.waves += 1
     state.timing["transfer"] += time.perf_counter() - t
     return out
