@@ -257,7 +257,9 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
     # over the source's points bounds what those points missed
     # (and links whose receiver's points all lie behind the source while part of it is in front:
     # there that transfer, which 7 source points near a small receiver can put far above what
-    # any point of it receives, is held within the bounding spheres' form factor)
+    # any point of it receives, is held within the bounding spheres' form factor, which stands
+    # alone where the source's points saw nothing of the receiver either: dropped as light-less,
+    # such links cost the 1,000-leaf canopy 0.65 -> 0.83 % per leaf at tolerance 0.02)
     nodes = state.nodes
     unseen = unseen_in_front(nodes, out.recv, out.src, out.ff_unocc)
     near = np.flatnonzero(unresolved(nodes, out.recv, out.src) | unseen)
@@ -266,7 +268,7 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
         missed = reciprocal_error(nodes, out.recv[near], out.src[near], out.ff[near], out.ff_unocc[near], reverse)
         r, s = out.recv[near], out.src[near]
         bound = sphere_form_factor_bound(nodes.center[r], nodes.radius[r], nodes.center[s], nodes.radius[s])
-        missed = np.where(unseen[near], np.minimum(missed, bound), missed)
+        missed = np.where(unseen[near], np.where(missed > 0, np.minimum(missed, bound), bound), missed)
         out.err_ff[near] = np.maximum(out.err_ff[near], missed)
     state.waves += 1
     state.timing["transfer"] += time.perf_counter() - t

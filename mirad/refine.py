@@ -201,10 +201,11 @@ def unseen_in_front(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff_unocc: n
     points saw the source: the receiver's part in front may still see it, which only the
     transfer taken from the source's side tells (``reciprocal_error``). (Points that do see it
     sample the part in front like any other variation, and a source straddling the receiver's
-    plane is clipped exactly at each point.) A bound in its place, the bounding spheres' form
-    factor, was 1 wherever one sphere held the other: a ground under a canopy straddles every
-    tilted leaf's plane, and its links to leaves its points did not see held 50 times the
-    tolerance's budget, each the ground's area times the leaf's radiosity."""
+    plane is clipped exactly at each point.) The bounding spheres' form factor alone, 1
+    wherever one sphere holds the other, is kept only where the source's points saw nothing
+    of the receiver either: a ground under a canopy straddles every tilted leaf's plane, and
+    with the bound its links to leaves its points did not see held 50 times the tolerance's
+    budget, each the ground's area times the leaf's radiosity."""
     return _straddles(nodes, recv, src) & (nodes.kind[src] != VOLUME) & (np.asarray(ff_unocc) <= 0)
 
 
