@@ -7,11 +7,11 @@
 
 from __future__ import annotations
 
-import warnings
 
 from . import _runtime  # noqa: F401  (must run before mitsuba is imported)
 from .errors import (BandTableError, EnvironmentProblem, MiradError, OutputError, SceneError, SettingsError,
                      SolutionMismatch)
+from .errors import warn as _warn
 from .scene import Scene, load_scene
 from .bands import read_band_table, with_bands
 from .options import check_render, default
@@ -104,8 +104,7 @@ def solve(scene, *, quiet: bool = True, **options) -> Solution:
     sol.stats["model_error"] = model
     sol.stats["total_error"] = float(sol.stats["estimated_error"]) + model
     if model > settings.tolerance:
-        warnings.warn(f"the scene's non-diffuse or transmitting BSDFs put this solution about {model:.1%} off "
+        _warn(f"the scene's non-diffuse or transmitting BSDFs put this solution about {model:.1%} off "
                       f"Mitsuba's path tracer whatever the tolerance ({settings.tolerance}): mirad models every "
-                      "surface as opaque and diffuse (see the loader's warnings and stats['model_error'])",
-                      stacklevel=2)
+                      "surface as opaque and diffuse (see the loader's warnings and stats['model_error'])")
     return sol

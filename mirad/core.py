@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import fnmatch
 import time
-import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -40,7 +39,7 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
                      face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
                      refinement_threshold, unresolved, unseen_in_front, visible_fraction, volume_transfer_std)
 from .scene import Scene
-from .errors import SettingsError
+from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, point_to_polygon_dr,
                        reverse_form_factor)
@@ -1828,18 +1827,18 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     gathered.noise_power = gathered.noise_power + far_noise
     est = output_estimate(state, est, gathered)
     if capped:
-        warnings.warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
+        warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
                       f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
-                      "tolerance or max_links", stacklevel=3)
+                      "tolerance or max_links")
     elif est.relative > settings.tolerance and history and history[-1] <= settings.tolerance:
         # the passes met the tolerance; the gather's own noise and fits, on the leaves, did not
-        warnings.warn(f"refinement met the tolerance {settings.tolerance} after {passes} passes (estimate "
+        warn(f"refinement met the tolerance {settings.tolerance} after {passes} passes (estimate "
                       f"{history[-1]:.4f}), but the output's estimate after the final gather is {est.relative:.4f}, "
                       "above the tolerance (the gather's own visibility noise, fits and split leaves); a lower tolerance "
-                      "refines further before the gather", stacklevel=3)
+                      "refines further before the gather")
     elif est.relative > settings.tolerance:
-        warnings.warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
-                      f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance", stacklevel=3)
+        warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
+                      f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance")
     return _solution(state, solved, gathered, est, passes, iterations, iterations_max, capped, t_start, history)
 
 

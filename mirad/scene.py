@@ -23,7 +23,7 @@ import numpy as np
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from ._runtime import choose_variant
 from .arrays import scene_diagonal
-from .errors import SceneError
+from .errors import SceneError, warn
 from .leaf import LeafError, is_leaf
 
 import drjit as dr  # noqa: E402
@@ -851,7 +851,7 @@ def _check_topology(scene: Scene, where: str) -> None:
 def _warn_once(scene: Scene, message: str) -> None:
     if message not in scene.warnings:
         scene.warnings.append(message)
-        warnings.warn(message, stacklevel=3)
+        warn(message)
 
 
 # ------------------------------------------------------------------------------------------

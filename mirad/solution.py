@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .arrays import LEAF_CORNER_UV, group_mean, group_sum, scene_diagonal
-from .errors import OutputError, SettingsError, SolutionMismatch
+from .errors import OutputError, SettingsError, SolutionMismatch, warn
 from .files import atomic_write
 
 #: Format version of saved .npz solutions.
@@ -554,9 +553,9 @@ class Solution:
                 why.append(f"{len(capped)} reached max_samples={max_samples} direct-light samples")
             if len(noisy):
                 why.append(f"{len(noisy)} have more gather noise than that with rays={rays} (give more rays)")
-            warnings.warn(f"{len(over)} of {n_pts} probes stay above the relative standard error tolerance "
+            warn(f"{len(over)} of {n_pts} probes stay above the relative standard error tolerance "
                           f"{tolerance:g} (probes {shown}): {'; '.join(why)}; their error is reported, "
-                          "not hidden", stacklevel=3)
+                          "not hidden")
         return h, err
 
     def require_scene(self):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,6 +22,7 @@ from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .hierarchy import Elements, Links, facing, triangle_normals
 from .linear import LeafSystem, solve_system
 from .oracle import choose_splits, transfer_bounds
+from .errors import warn
 from .scene import Scene
 from .settings import Settings
 from .arrays import RAY_OFFSET
@@ -338,8 +338,8 @@ def uses_hierarchical_core(settings: Settings) -> bool:
         return False
     what = settings.legacy_feature()
     if what is not None:
-        warnings.warn(f"{what} runs on the legacy core only: this solve uses core='legacy' (leave it out to "
-                      "solve on the hierarchical core)", stacklevel=3)
+        warn(f"{what} runs on the legacy core only: this solve uses core='legacy' (leave it out to "
+                      "solve on the hierarchical core)")
         return False
     return True
 
@@ -368,10 +368,10 @@ def check_link_budget(scene: Scene, minimum: int, max_links: int, what: str) -> 
                             + ("" if "facing" not in what else ", or solve with clustering='on' (links "
                                "grow with the patches, not their pairs)"))
     if 2 * minimum > max_links:
-        warnings.warn(f"{where}: {what}: {minimum:,} links before any refinement, and refining each once "
+        warn(f"{where}: {what}: {minimum:,} links before any refinement, and refining each once "
                       f"needs at least {2 * minimum:,}, more than max_links={max_links:,}: refinement will "
                       "stop at the cap well before the tolerance; raise max_links (about "
-                      f"{size(2 * minimum)} for one refinement) or solve a coarser mesh", stacklevel=3)
+                      f"{size(2 * minimum)} for one refinement) or solve a coarser mesh")
 
 
 def _facing_pair_count(prob) -> int:
@@ -510,10 +510,10 @@ def solve_problem(scene: Scene, settings: Settings):
             if prob._executor is not None:
                 prob._executor.close()
         if capped:
-            warnings.warn(f"refinement stopped at max_elements={settings.max_elements} or "
+            warn(f"refinement stopped at max_elements={settings.max_elements} or "
                           f"max_links={prob.max_links:,} ({len(prob.elements):,} elements, {len(prob.links):,} links; "
                           "max_links defaults to what half the memory holds); the estimate says how far from the "
-                          "tolerance it got: raise the tolerance, or the caps on a larger machine", stacklevel=2)
+                          "tolerance it got: raise the tolerance, or the caps on a larger machine")
 
         # --- results --------------------------------------------------------------------------------
         h_leaf = system.gather(b_leaf) + prob.direct[leaves]
