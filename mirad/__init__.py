@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-
 from . import _runtime  # noqa: F401  (must run before mitsuba is imported)
 from .errors import (BandTableError, EnvironmentProblem, MiradError, OutputError, SceneError, SettingsError,
                      SolutionMismatch)
@@ -105,6 +104,6 @@ def solve(scene, *, quiet: bool = True, **options) -> Solution:
     sol.stats["total_error"] = float(sol.stats["estimated_error"]) + model
     if model > settings.tolerance:
         _warn(f"the scene's non-diffuse or transmitting BSDFs put this solution about {model:.1%} off "
-                      f"Mitsuba's path tracer whatever the tolerance ({settings.tolerance}): mirad models every "
-                      "surface as opaque and diffuse (see the loader's warnings and stats['model_error'])")
+              f"Mitsuba's path tracer whatever the tolerance ({settings.tolerance}): mirad models every "
+              "surface as opaque and diffuse (see the loader's warnings and stats['model_error'])")
     return sol

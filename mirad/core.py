@@ -1828,17 +1828,17 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     est = output_estimate(state, est, gathered)
     if capped:
         warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
-                      f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
-                      "tolerance or max_links")
+             f"{est.relative:.4f} says how far from the tolerance {settings.tolerance} it got: raise the "
+             "tolerance or max_links")
     elif est.relative > settings.tolerance and history and history[-1] <= settings.tolerance:
         # the passes met the tolerance; the gather's own noise and fits, on the leaves, did not
         warn(f"refinement met the tolerance {settings.tolerance} after {passes} passes (estimate "
-                      f"{history[-1]:.4f}), but the output's estimate after the final gather is {est.relative:.4f}, "
-                      "above the tolerance (the gather's own visibility noise, fits and split leaves); a lower tolerance "
-                      "refines further before the gather")
+             f"{history[-1]:.4f}), but the output's estimate after the final gather is {est.relative:.4f}, "
+             "above the tolerance (the gather's own visibility noise, fits and split leaves); a lower tolerance "
+             "refines further before the gather")
     elif est.relative > settings.tolerance:
         warn(f"refinement stopped after {passes} passes with an estimated error of {est.relative:.4f}, above "
-                      f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance")
+             f"the tolerance {settings.tolerance}; raise max_refine_passes or the tolerance")
     return _solution(state, solved, gathered, est, passes, iterations, iterations_max, capped, t_start, history)
 
 

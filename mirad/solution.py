@@ -554,8 +554,8 @@ class Solution:
             if len(noisy):
                 why.append(f"{len(noisy)} have more gather noise than that with rays={rays} (give more rays)")
             warn(f"{len(over)} of {n_pts} probes stay above the relative standard error tolerance "
-                          f"{tolerance:g} (probes {shown}): {'; '.join(why)}; their error is reported, "
-                          "not hidden")
+                 f"{tolerance:g} (probes {shown}): {'; '.join(why)}; their error is reported, "
+                 "not hidden")
         return h, err
 
     def require_scene(self):

@@ -339,7 +339,7 @@ def uses_hierarchical_core(settings: Settings) -> bool:
     what = settings.legacy_feature()
     if what is not None:
         warn(f"{what} runs on the legacy core only: this solve uses core='legacy' (leave it out to "
-                      "solve on the hierarchical core)")
+             "solve on the hierarchical core)")
         return False
     return True
 
@@ -369,9 +369,9 @@ def check_link_budget(scene: Scene, minimum: int, max_links: int, what: str) -> 
                                "grow with the patches, not their pairs)"))
     if 2 * minimum > max_links:
         warn(f"{where}: {what}: {minimum:,} links before any refinement, and refining each once "
-                      f"needs at least {2 * minimum:,}, more than max_links={max_links:,}: refinement will "
-                      "stop at the cap well before the tolerance; raise max_links (about "
-                      f"{size(2 * minimum)} for one refinement) or solve a coarser mesh")
+             f"needs at least {2 * minimum:,}, more than max_links={max_links:,}: refinement will "
+             "stop at the cap well before the tolerance; raise max_links (about "
+             f"{size(2 * minimum)} for one refinement) or solve a coarser mesh")
 
 
 def _facing_pair_count(prob) -> int:
@@ -511,9 +511,9 @@ def solve_problem(scene: Scene, settings: Settings):
                 prob._executor.close()
         if capped:
             warn(f"refinement stopped at max_elements={settings.max_elements} or "
-                          f"max_links={prob.max_links:,} ({len(prob.elements):,} elements, {len(prob.links):,} links; "
-                          "max_links defaults to what half the memory holds); the estimate says how far from the "
-                          "tolerance it got: raise the tolerance, or the caps on a larger machine")
+                 f"max_links={prob.max_links:,} ({len(prob.elements):,} elements, {len(prob.links):,} links; "
+                 "max_links defaults to what half the memory holds); the estimate says how far from the "
+                 "tolerance it got: raise the tolerance, or the caps on a larger machine")
 
         # --- results --------------------------------------------------------------------------------
         h_leaf = system.gather(b_leaf) + prob.direct[leaves]
