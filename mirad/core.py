@@ -263,9 +263,9 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
     unseen = unseen_in_front(nodes, out.recv, out.src, out.ff_unocc)
     near = np.flatnonzero(unresolved(nodes, out.recv, out.src) | unseen)
     if len(near):
-        reverse = reverse_form_factor(_buffers(state), out.recv[near], out.src[near], state.offset)
-        missed = reciprocal_error(nodes, out.recv[near], out.src[near], out.ff[near], out.ff_unocc[near], reverse)
         r, s = out.recv[near], out.src[near]
+        reverse = reverse_form_factor(_buffers(state), r, s, state.offset)
+        missed = reciprocal_error(nodes, r, s, out.ff[near], out.ff_unocc[near], reverse)
         bound = sphere_form_factor_bound(nodes.center[r], nodes.radius[r], nodes.center[s], nodes.radius[s])
         missed = np.where(unseen[near], np.where(missed > 0, np.minimum(missed, bound), bound), missed)
         out.err_ff[near] = np.maximum(out.err_ff[near], missed)

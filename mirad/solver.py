@@ -393,179 +393,183 @@ def solve_problem(scene: Scene, settings: Settings):
     """Run hierarchical radiosity on a loaded scene; returns a Solution. Its kernels are
     compiled without fast math (``_runtime.exact_arithmetic``)."""
     with exact_arithmetic():
-        from .solution import Solution
+        return _solve(scene, settings)
 
-        max_links = settings.max_links or _memory_max_links()
-        patches = len(scene.patch_tri)
-        # every patch receives its light through at least one link
-        check_link_budget(scene, patches, max_links, f"{patches:,} patches need one link each")
-        if uses_hierarchical_core(settings):
-            from .core import solve_hierarchical
 
-            evaluator = None
-            if settings.workers or settings.scheduler:
-                from .distributed import DaskEvaluator
+def _solve(scene: Scene, settings: Settings):
+    """``solve_problem``'s work: the hierarchical core, or the legacy one."""
+    from .solution import Solution
 
-                evaluator = DaskEvaluator(scene, workers=settings.workers, scheduler=settings.scheduler)
-            try:
-                return solve_hierarchical(scene, settings, max_links, evaluator=evaluator)
-            finally:
-                if evaluator is not None:
-                    evaluator.close()
-        t_start = time.perf_counter()
-        prob = Problem(scene, settings)
-        if prob.clusters is None and 2 * patches * (patches - 1) > prob.max_links:   # else no pair count can pass
-            check_link_budget(scene, _facing_pair_count(prob), prob.max_links,
-                              f"without clusters every pair of the {patches:,} patches facing each other is linked")
-        bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet)
+    max_links = settings.max_links or _memory_max_links()
+    patches = len(scene.patch_tri)
+    # every patch receives its light through at least one link
+    check_link_budget(scene, patches, max_links, f"{patches:,} patches need one link each")
+    if uses_hierarchical_core(settings):
+        from .core import solve_hierarchical
 
-        # --- initial linking and first solve ------------------------------------------------------
-        t = time.perf_counter()
-        recv, src = prob.initial_pairs()
-        prob.timing["link"] += time.perf_counter() - t
-        geo = prob.geometry()
-        prob.links = prob.evaluate(recv, src, geo)
-        _open_lit_clusters(prob)
-        prob.update_direct(np.arange(len(prob.elements)))
-        leaves = prob.elements.leaves
-        system = prob.system(leaves)
-        b_leaf, iterations, residual = prob.solve(system, system.emission.copy())
-        total_iterations = most_iterations = iterations
-        bar.update(1)
+        evaluator = None
+        if settings.workers or settings.scheduler:
+            from .distributed import DaskEvaluator
 
-        # --- multigridding: refine against a shrinking power budget, re-solve ------------------
-        # Each link's error is a power (W): the receiver's area times its radiosity error (see
-        # link_power_errors). The solution's estimated relative error is their sum over the total
-        # power scale A_total * B_mean. A pass refines every link above eps = budget / (2 M): the
-        # links below it hold at most half the budget, so passes drive the estimate down until it
-        # meets the tolerance (or elements reach their minimum size).
-        passes = 0
-        capped = False
-        # Rounds: refinement passes until the running estimate meets the tolerance, then every
-        # kept link re-estimated with fresh samples. The oracle kept exactly the links whose
-        # samples looked smooth; estimating them from the same samples would bias F low (samples
-        # that missed a kernel peak both look smooth and under-estimate), and the running
-        # estimate with them. Re-evaluating with an independent random stream decouples selection
-        # from estimation; if the fresh estimate is still over the tolerance, refinement goes on
-        # from there (a new stream per round), while passes remain.
+            evaluator = DaskEvaluator(scene, workers=settings.workers, scheduler=settings.scheduler)
         try:
-            for stream in range(1, _MAX_ROUNDS + 1):
-                stalled = False
-                while passes < settings.max_refine_passes:
-                    b_elem = system.pull @ b_leaf
-                    b_mean = _reflected_mean(prob, leaves, b_leaf)
-                    spread = _radiosity_spread(prob, system, b_elem)
-                    per_elem = _element_errors(prob, b_elem, spread)
-                    if _estimate(prob, b_elem, spread, b_mean, per_elem) <= settings.tolerance:
-                        break
-                    budget = settings.tolerance / _error_scale(prob, b_elem, spread, per_elem) * b_mean * \
-                        prob.total_area
-                    eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links) + len(leaves), 1))
-                    t = time.perf_counter()
-                    for _ in range(4):
-                        resampled = _resample_direct(prob, leaves, eps)
-                        refined, capped = _refine(prob, b_elem, spread, eps)
-                        if refined or resampled or capped:
-                            break
-                        # nothing is above its share, yet the estimate is over the tolerance: lower the bar
-                        eps /= 4.0
-                    prob.timing["refine"] += time.perf_counter() - t
-                    passes += 1
-                    if refined or resampled:
-                        x0 = prob.b_elem_cache[prob.elements.leaves] if refined else b_leaf
-                        leaves = prob.elements.leaves
-                        system = prob.system(leaves)
-                        b_leaf, iterations, residual = prob.solve(system, x0)
-                        total_iterations += iterations
-                        most_iterations = max(most_iterations, iterations)
-                    bar.update(1)
-                    bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
-                    if not (refined or resampled) or capped:
-                        stalled = True
-                        break
-                # --- re-estimate every kept link with fresh samples -------------------------------
-                if _open_lit_clusters(prob):
-                    leaves = prob.elements.leaves
-                selected = prob.links
-                prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=stream,
-                                           vclass=selected.vclass)
-                # whether a cluster link was seen at all is judged on both sample sets, so the error
-                # estimate does not swing with which links happen to miss their cluster this time
-                prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
-                restore_textures(prob)
-                system = prob.system(leaves)
-                b_leaf, iterations, residual = prob.solve(system, b_leaf)
-                total_iterations += iterations
-                most_iterations = max(most_iterations, iterations)
-                b_elem = system.pull @ b_leaf
-                fresh = _estimate(prob, b_elem, _radiosity_spread(prob, system, b_elem),
-                                  _reflected_mean(prob, leaves, b_leaf))
-                if fresh <= settings.tolerance or stalled or capped or passes >= settings.max_refine_passes:
-                    break
+            return solve_hierarchical(scene, settings, max_links, evaluator=evaluator)
         finally:
-            # the passes it took are the whole bar, which stays with the final estimate
-            bar.total = bar.n
-            bar.refresh()
-            bar.close()
-            if prob._executor is not None:
-                prob._executor.close()
-        if capped:
-            warn(f"refinement stopped at max_elements={settings.max_elements} or "
-                 f"max_links={prob.max_links:,} ({len(prob.elements):,} elements, {len(prob.links):,} links; "
-                 "max_links defaults to what half the memory holds); the estimate says how far from the "
-                 "tolerance it got: raise the tolerance, or the caps on a larger machine")
+            if evaluator is not None:
+                evaluator.close()
+    t_start = time.perf_counter()
+    prob = Problem(scene, settings)
+    if prob.clusters is None and 2 * patches * (patches - 1) > prob.max_links:   # else no pair count can pass
+        check_link_budget(scene, _facing_pair_count(prob), prob.max_links,
+                          f"without clusters every pair of the {patches:,} patches facing each other is linked")
+    bar = tqdm(total=settings.max_refine_passes + 1, desc="mirad", disable=settings.quiet)
 
-        # --- results --------------------------------------------------------------------------------
-        h_leaf = system.gather(b_leaf) + prob.direct[leaves]
-        # Error estimate (relative, the tolerance's norm): the elements' power errors
-        # (_element_errors) and the direct light's sampling error over A_total * mean(B - E).
-        b_elem = system.pull @ b_leaf
-        spread = _radiosity_spread(prob, system, b_elem)
-        area_leaf = prob.elements.area[leaves]
-        reflected_mean = _reflected_mean(prob, leaves, b_leaf)
-        per_elem = _element_errors(prob, b_elem, spread)
-        estimated = _estimate(prob, b_elem, spread, reflected_mean, per_elem)
-        # the same error over the mean of B itself (emission included): the validation metric's norm
-        estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
-        # per-leaf error map, W/m^2: its area integral over A_total * mean(B - E) is
-        # stats["estimated_error"]
-        err_leaf = system.push @ (per_elem / prob.elements.area)
-        if scene.light_emitters:
-            err_leaf += np.sqrt(2.0 / np.pi) * prob.direct_power_errors(leaves) / prob.elements.area[leaves]
-        prob.timing["total"] = time.perf_counter() - t_start
-        stats = {
-            "elements": int(len(prob.elements)),
-            "leaves": int(len(leaves)),
-            "links": int(len(prob.links)),
-            "rays": int(prob.rays),
-            "seconds": {k: round(v, 4) for k, v in prob.timing.items()},
-            "estimated_error": estimated,
-            "estimated_error_of_mean": estimated_of_mean,
-            "error_bound": _error_bound(prob, b_elem, spread, reflected_mean),
-            "core": "legacy",
-            "oracle": settings.oracle,
-            "texture_links": int(np.count_nonzero(prob.links.vclass == TEXTURED)),
-            "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
-            "solver": settings.solver,
-            "solver_iterations": int(total_iterations),
-            "solver_iterations_max": int(most_iterations),      # the most one solve took
-            "solver_residual": float(residual),
-            "refine_passes": passes,
-            "clusters": 0 if prob.clusters is None else int(prob.clusters.count),
-            "min_element_area": prob.min_area,
-            "capped": bool(capped),
-            # the estimate at or under the tolerance (a solve that stops above it also warns)
-            "within_tolerance": bool(estimated <= settings.tolerance),
-            "features": scene.features,
-            "variant": scene.variant,
-            "memory_bytes": {"elements": prob.elements.nbytes, "links": prob.links.nbytes},
-            "settings": {k: getattr(settings, k) for k in ("tolerance", "samples_per_link", "seed", "solver")},
-            "warnings": list(scene.warnings),
-        }
-        err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
-        detail = _leaf_detail(prob, leaves, b_elem)
-        stats["detail_leaves"] = int(len(detail[0]))
-        return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=detail)
+    # --- initial linking and first solve ------------------------------------------------------
+    t = time.perf_counter()
+    recv, src = prob.initial_pairs()
+    prob.timing["link"] += time.perf_counter() - t
+    geo = prob.geometry()
+    prob.links = prob.evaluate(recv, src, geo)
+    _open_lit_clusters(prob)
+    prob.update_direct(np.arange(len(prob.elements)))
+    leaves = prob.elements.leaves
+    system = prob.system(leaves)
+    b_leaf, iterations, residual = prob.solve(system, system.emission.copy())
+    total_iterations = most_iterations = iterations
+    bar.update(1)
+
+    # --- multigridding: refine against a shrinking power budget, re-solve ------------------
+    # Each link's error is a power (W): the receiver's area times its radiosity error (see
+    # link_power_errors). The solution's estimated relative error is their sum over the total
+    # power scale A_total * B_mean. A pass refines every link above eps = budget / (2 M): the
+    # links below it hold at most half the budget, so passes drive the estimate down until it
+    # meets the tolerance (or elements reach their minimum size).
+    passes = 0
+    capped = False
+    # Rounds: refinement passes until the running estimate meets the tolerance, then every
+    # kept link re-estimated with fresh samples. The oracle kept exactly the links whose
+    # samples looked smooth; estimating them from the same samples would bias F low (samples
+    # that missed a kernel peak both look smooth and under-estimate), and the running
+    # estimate with them. Re-evaluating with an independent random stream decouples selection
+    # from estimation; if the fresh estimate is still over the tolerance, refinement goes on
+    # from there (a new stream per round), while passes remain.
+    try:
+        for stream in range(1, _MAX_ROUNDS + 1):
+            stalled = False
+            while passes < settings.max_refine_passes:
+                b_elem = system.pull @ b_leaf
+                b_mean = _reflected_mean(prob, leaves, b_leaf)
+                spread = _radiosity_spread(prob, system, b_elem)
+                per_elem = _element_errors(prob, b_elem, spread)
+                if _estimate(prob, b_elem, spread, b_mean, per_elem) <= settings.tolerance:
+                    break
+                budget = settings.tolerance / _error_scale(prob, b_elem, spread, per_elem) * b_mean * prob.total_area
+                eps = settings.link_error_scale * budget / (2.0 * max(len(prob.links) + len(leaves), 1))
+                t = time.perf_counter()
+                for _ in range(4):
+                    resampled = _resample_direct(prob, leaves, eps)
+                    refined, capped = _refine(prob, b_elem, spread, eps)
+                    if refined or resampled or capped:
+                        break
+                    # nothing is above its share, yet the estimate is over the tolerance: lower the bar
+                    eps /= 4.0
+                prob.timing["refine"] += time.perf_counter() - t
+                passes += 1
+                if refined or resampled:
+                    x0 = prob.b_elem_cache[prob.elements.leaves] if refined else b_leaf
+                    leaves = prob.elements.leaves
+                    system = prob.system(leaves)
+                    b_leaf, iterations, residual = prob.solve(system, x0)
+                    total_iterations += iterations
+                    most_iterations = max(most_iterations, iterations)
+                bar.update(1)
+                bar.set_postfix(elements=len(prob.elements), links=len(prob.links))
+                if not (refined or resampled) or capped:
+                    stalled = True
+                    break
+            # --- re-estimate every kept link with fresh samples -------------------------------
+            if _open_lit_clusters(prob):
+                leaves = prob.elements.leaves
+            selected = prob.links
+            prob.links = prob.evaluate(selected.recv, selected.src, prob.geometry(), stream=stream,
+                                       vclass=selected.vclass)
+            # whether a cluster link was seen at all is judged on both sample sets, so the error
+            # estimate does not swing with which links happen to miss their cluster this time
+            prob.links.ff_max = np.maximum(prob.links.ff_max, selected.ff_max)
+            restore_textures(prob)
+            system = prob.system(leaves)
+            b_leaf, iterations, residual = prob.solve(system, b_leaf)
+            total_iterations += iterations
+            most_iterations = max(most_iterations, iterations)
+            b_elem = system.pull @ b_leaf
+            fresh = _estimate(prob, b_elem, _radiosity_spread(prob, system, b_elem),
+                              _reflected_mean(prob, leaves, b_leaf))
+            if fresh <= settings.tolerance or stalled or capped or passes >= settings.max_refine_passes:
+                break
+    finally:
+        # the passes it took are the whole bar, which stays with the final estimate
+        bar.total = bar.n
+        bar.refresh()
+        bar.close()
+        if prob._executor is not None:
+            prob._executor.close()
+    if capped:
+        warn(f"refinement stopped at max_elements={settings.max_elements} or "
+             f"max_links={prob.max_links:,} ({len(prob.elements):,} elements, {len(prob.links):,} links; "
+             "max_links defaults to what half the memory holds); the estimate says how far from the "
+             "tolerance it got: raise the tolerance, or the caps on a larger machine")
+
+    # --- results --------------------------------------------------------------------------------
+    h_leaf = system.gather(b_leaf) + prob.direct[leaves]
+    # Error estimate (relative, the tolerance's norm): the elements' power errors
+    # (_element_errors) and the direct light's sampling error over A_total * mean(B - E).
+    b_elem = system.pull @ b_leaf
+    spread = _radiosity_spread(prob, system, b_elem)
+    area_leaf = prob.elements.area[leaves]
+    reflected_mean = _reflected_mean(prob, leaves, b_leaf)
+    per_elem = _element_errors(prob, b_elem, spread)
+    estimated = _estimate(prob, b_elem, spread, reflected_mean, per_elem)
+    # the same error over the mean of B itself (emission included): the validation metric's norm
+    estimated_of_mean = estimated * reflected_mean / _mean_radiosity(b_leaf, area_leaf)
+    # per-leaf error map, W/m^2: its area integral over A_total * mean(B - E) is
+    # stats["estimated_error"]
+    err_leaf = system.push @ (per_elem / prob.elements.area)
+    if scene.light_emitters:
+        err_leaf += np.sqrt(2.0 / np.pi) * prob.direct_power_errors(leaves) / prob.elements.area[leaves]
+    prob.timing["total"] = time.perf_counter() - t_start
+    stats = {
+        "elements": int(len(prob.elements)),
+        "leaves": int(len(leaves)),
+        "links": int(len(prob.links)),
+        "rays": int(prob.rays),
+        "seconds": {k: round(v, 4) for k, v in prob.timing.items()},
+        "estimated_error": estimated,
+        "estimated_error_of_mean": estimated_of_mean,
+        "error_bound": _error_bound(prob, b_elem, spread, reflected_mean),
+        "core": "legacy",
+        "oracle": settings.oracle,
+        "texture_links": int(np.count_nonzero(prob.links.vclass == TEXTURED)),
+        "visibility_classes": dict(prob.classified, culling=prob.culler is not None),
+        "solver": settings.solver,
+        "solver_iterations": int(total_iterations),
+        "solver_iterations_max": int(most_iterations),      # the most one solve took
+        "solver_residual": float(residual),
+        "refine_passes": passes,
+        "clusters": 0 if prob.clusters is None else int(prob.clusters.count),
+        "min_element_area": prob.min_area,
+        "capped": bool(capped),
+        # the estimate at or under the tolerance (a solve that stops above it also warns)
+        "within_tolerance": bool(estimated <= settings.tolerance),
+        "features": scene.features,
+        "variant": scene.variant,
+        "memory_bytes": {"elements": prob.elements.nbytes, "links": prob.links.nbytes},
+        "settings": {k: getattr(settings, k) for k in ("tolerance", "samples_per_link", "seed", "solver")},
+        "warnings": list(scene.warnings),
+    }
+    err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
+    detail = _leaf_detail(prob, leaves, b_elem)
+    stats["detail_leaves"] = int(len(detail[0]))
+    return Solution.from_solve(scene, prob, leaves, b_leaf, h_leaf, err_leaf, stats, detail=detail)
 
 
 #: Peak memory of a solve per link, bytes (measured 215 on the Cornell box at tolerance 0.02,
