@@ -748,6 +748,28 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     return ff, var, spatial, seconds, gv_point
 
 
+def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_src: np.ndarray, pair_rays: np.ndarray,
+                    g_ff: np.ndarray, g_var: np.ndarray, g_shadow: np.ndarray, g_pts: np.ndarray, b_src: np.ndarray,
+                    h_node: np.ndarray) -> float:
+    """Pairs (M,) whose rays disagreed more than their share of the tolerance allows are
+    evaluated again with GATHER_RAYS times the rays, up to a ray to each of the source's
+    points (a quadrature, not a sample); ``pair_rays`` and the pairs' results (as
+    ``_evaluate_pairs`` returns them) are updated in place. Returns the seconds in waves."""
+    tol = state.settings.tolerance
+    seconds_in_waves = 0.0
+    while True:
+        # (the leaves of one input triangle err independently: each by its share of it)
+        noisy = np.flatnonzero((g_var * output_share(state, pair_node) >
+                                gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)) &
+                               (pair_rays < GATHER_MAX_RAYS))
+        if not len(noisy):
+            return seconds_in_waves
+        pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
+        g_ff[noisy], g_var[noisy], g_shadow[noisy], seconds, g_pts[noisy] = _evaluate_pairs(
+            state, solved, pair_node[noisy], pair_src[noisy], pair_rays[noisy])
+        seconds_in_waves += seconds
+
+
 def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray, gv_point: np.ndarray,
                     rays: np.ndarray) -> np.ndarray:
     """(M,) squared form-factor error of receivers recv's K-point quadrature of the
@@ -1403,20 +1425,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     seconds_in_waves += seconds
-    # pairs whose few rays disagreed more than their share of the tolerance allows are
-    # evaluated again with four times the rays, up to a ray to each of the source's points
-    # (a quadrature, not a sample)
-    while True:
-        # (the leaves of one input triangle err independently: each by its share of it)
-        noisy = np.flatnonzero((g_var * output_share(state, pair_node) >
-                                gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)) &
-                               (pair_rays < GATHER_MAX_RAYS))
-        if not len(noisy):
-            break
-        pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
-        g_ff[noisy], g_var[noisy], g_shadow[noisy], seconds, g_pts[noisy] = _evaluate_pairs(
-            state, solved, pair_node[noisy], pair_src[noisy], pair_rays[noisy])
-        seconds_in_waves += seconds
+    seconds_in_waves += _resample_noisy(state, solved, pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts,
+                                        b_src, h_node)
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
@@ -1480,8 +1490,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         kept.append([a[~on_split] for a in pairs_now])
         kids = nodes.children[pair_node[over]]
         own, slot = np.nonzero(kids >= 0)
-        k_node, k_src, k_rays = kids[own, slot].astype(np.int64), pair_src[over][own], pair_rays[over][own]
+        # (a child's noise weighs by its share of the input triangle, a quarter of its parent's:
+        # it starts at a quarter of its parent's rays, and gets more where they disagree)
+        k_node, k_src = kids[own, slot].astype(np.int64), pair_src[over][own]
+        k_rays = np.maximum(pair_rays[over][own] // GATHER_RAYS, 1)
         k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node)
         seconds_in_waves += k_seconds
         evaluated += len(k_node)
         pairs_now = [k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts]
