@@ -141,7 +141,15 @@ def build(scene: Scene, settings: Settings) -> State:
     t = time.perf_counter()
     channels = 1 if scene.grey else scene.channels
     surf = _surface(scene, channels, settings.seed)
-    nodes, order, root = build_nodes(surf)
+    # (the tree and its buried shares depend on the scene and the seed alone: built once, and
+    # the later solves of the same scene start from a copy)
+    key = ("hierarchical tree", channels, int(settings.seed))
+    kept = scene.prepared.get(key)
+    if kept is not None and kept[0].same_as(surf):
+        nodes, order, root, buried = kept[1].copy(), kept[2], kept[3], kept[4].copy()
+    else:
+        nodes, order, root = build_nodes(surf)
+        buried = None
     total = float(nodes.area[: len(surf.verts)].sum())
     counted = counted_patches(scene, settings)
     tol = settings.tolerance
@@ -152,7 +160,11 @@ def build(scene: Scene, settings: Settings) -> State:
                   order=order,
                   min_area=max(settings.min_area, (tol * settings.min_area_factor) ** 2) * total,
                   offset=RAY_OFFSET * scene.diagonal, links=Links(), periodic=box_for(scene, settings))
-    _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
+    if buried is None:
+        _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
+        scene.prepared[key] = (surf, nodes.copy(), order, root, state.buried.copy())
+    else:
+        state.buried = buried
     state.timing["build"] += time.perf_counter() - t
     return state
 

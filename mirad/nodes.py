@@ -125,6 +125,9 @@ class Nodes:
         for f in fields(self):
             setattr(self, f.name, np.concatenate([getattr(self, f.name), getattr(other, f.name)]))
 
+    def copy(self) -> "Nodes":
+        return Nodes(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
+
     def splittable(self, min_area: float) -> np.ndarray:
         """(N,) bool: clusters, and triangles larger than ``min_area`` (m^2)."""
         return (self.kind != TRIANGLE) | (self.area > min_area)
@@ -156,6 +159,14 @@ class Surface:
     curve: tuple
     diagonal: float
     seed: int
+
+    def same_as(self, other: "Surface") -> bool:
+        """Whether a tree built over ``other`` is the one this surface would get."""
+        arrays = [(self.verts, other.verts), (self.normal, other.normal), (self.group_key, other.group_key),
+                  (self.rho_max, other.rho_max), (self.emits, other.emits)]
+        arrays += list(zip(self.curve, other.curve))
+        return self.diagonal == other.diagonal and self.seed == other.seed and \
+            all(np.array_equal(a, b) for a, b in arrays)
 
 
 def build_nodes(surf: Surface) -> tuple[Nodes, np.ndarray, int]:

@@ -140,6 +140,10 @@ class Scene:
     shape_files: list = field(default_factory=list)
     band_names: list | None = None
     light_band_scale: np.ndarray | None = None
+    #: what solvers derive from the scene alone and keep for its next solve (the hierarchical
+    #: core's node tree, as Mitsuba keeps its ray-tracing hierarchy), by the solver's own key;
+    #: a copy of the scene (``dataclasses.replace``) starts without it
+    prepared: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         T = len(self.faces)

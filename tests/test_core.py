@@ -68,6 +68,38 @@ def test_deterministic():
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
 
 
+def test_a_scene_solved_again_starts_from_its_kept_tree():
+    """The node tree (and its buried shares) depends on the scene and the seed alone: the
+    first solve keeps it on the scene and the next ones start from a copy, bitwise as if
+    built again; a scene changed in place where the tree reads it (a surface made darker
+    than any other, a light switched off) is built again, and a copy of the scene keeps
+    nothing."""
+    import dataclasses
+
+    path = SCENES / "cornell-box" / "scene.xml"
+    scene = mirad.load_scene(path)
+    a = mirad.solve(scene, tolerance=0.2, seed=5, **HIER)
+    key = ("hierarchical tree", 3, 5)
+    assert key in scene.prepared
+    kept_nodes = scene.prepared[key][1]
+    b = mirad.solve(scene, tolerance=0.2, seed=5, **HIER)
+    np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
+    assert scene.prepared[key][1] is kept_nodes            # (the solve grew its own copy)
+    # in place: the tree's reflectance bounds and emitting flags change with the scene
+    dark = scene.shape_index("floor")
+    lit = scene.tri_emission.max(axis=1) > 0
+    fresh = mirad.load_scene(path)
+    for s in (scene, fresh):
+        s.tri_rho[s.tri_shape == dark] *= 0.25
+        s.tri_emission[lit] = 0.0
+        s.tri_emission[s.tri_shape == dark] = 1.0
+    c = mirad.solve(scene, tolerance=0.2, seed=5, **HIER)
+    d = mirad.solve(fresh, tolerance=0.2, seed=5, **HIER)
+    np.testing.assert_array_equal(c.triangle_radiosity, d.triangle_radiosity)
+    assert not np.array_equal(c.triangle_radiosity, a.triangle_radiosity)
+    assert dataclasses.replace(scene).prepared == {}
+
+
 def _square_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Vertices ((n + 1)^2, 3) and triangles (2 n^2, 3) of the square [-1, 1]^2 at z = 0 as an
     n x n grid of squares, each cut into two triangles."""
