@@ -1226,8 +1226,8 @@ def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     f *= fill[s_pos][:, None, None]
     # (the parts' offsets from their mean, the source's centroid: the transfer already carries
     # the source's mean radiosity, which is its field at the centroid)
-    part_centre = parts[s_pos].mean(axis=2)
-    centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[s_pos][:, None, None]   # (M, 4, 3)
+    part_centre = parts.mean(axis=2)
+    centre = ((part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None])[s_pos]   # (M, 4, 3)
     w = nodes.recv_w[recv].astype(np.float64)
     unoccluded = (w * f.sum(axis=2)).sum(axis=1)
     scale = np.divide(ff, unoccluded, out=np.zeros(len(recv)), where=unoccluded > 0)
