@@ -136,15 +136,19 @@ def _surface(scene: Scene, channels: int, seed: int) -> Surface:
 # Stages
 # ------------------------------------------------------------------------------------------
 
+#: The key of the node tree a solve keeps on its scene (``Scene.prepared``): (the surface it was
+#: built over, the nodes, their order, the root, the triangles' buried shares).
+KEPT_TREE = "hierarchical tree"
+
+
 def build(scene: Scene, settings: Settings) -> State:
     """Stage build: the node hierarchy and the solve's state."""
     t = time.perf_counter()
     channels = 1 if scene.grey else scene.channels
     surf = _surface(scene, channels, settings.seed)
     # (the tree and its buried shares depend on the scene and the seed alone: built once, and
-    # the later solves of the same scene start from a copy)
-    key = ("hierarchical tree", channels, int(settings.seed))
-    kept = scene.prepared.get(key)
+    # the later solves of the same scene start from a copy; one tree a scene, the last seed's)
+    kept = scene.prepared.get(KEPT_TREE)
     if kept is not None and kept[0].same_as(surf):
         nodes, order, root, buried = kept[1].copy(), kept[2], kept[3], kept[4].copy()
     else:
@@ -162,7 +166,7 @@ def build(scene: Scene, settings: Settings) -> State:
                   offset=RAY_OFFSET * scene.diagonal, links=Links(), periodic=box_for(scene, settings))
     if buried is None:
         _measure_buried(state, np.flatnonzero(nodes.kind == TRIANGLE))
-        scene.prepared[key] = (surf, nodes.copy(), order, root, state.buried.copy())
+        scene.prepared[KEPT_TREE] = (surf, nodes.copy(), order, root, state.buried.copy())
     else:
         state.buried = buried
     state.timing["build"] += time.perf_counter() - t

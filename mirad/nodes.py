@@ -126,6 +126,7 @@ class Nodes:
             setattr(self, f.name, np.concatenate([getattr(self, f.name), getattr(other, f.name)]))
 
     def copy(self) -> "Nodes":
+        """A copy whose arrays the copy's owner may change (splits append to them)."""
         return Nodes(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
 
     def splittable(self, min_area: float) -> np.ndarray:

@@ -71,20 +71,22 @@ def test_deterministic():
 def test_a_scene_solved_again_starts_from_its_kept_tree():
     """The node tree (and its buried shares) depends on the scene and the seed alone: the
     first solve keeps it on the scene and the next ones start from a copy, bitwise as if
-    built again; a scene changed in place where the tree reads it (a surface made darker
-    than any other, a light switched off) is built again, and a copy of the scene keeps
-    nothing."""
+    built again; another seed, or a scene changed in place where the tree reads it (the
+    floor darker and emitting, the light switched off), gets a tree built again, and a copy
+    of the scene keeps nothing."""
     import dataclasses
 
     path = SCENES / "cornell-box" / "scene.xml"
     scene = mirad.load_scene(path)
     a = mirad.solve(scene, tolerance=0.2, seed=5, **HIER)
-    key = ("hierarchical tree", 3, 5)
-    assert key in scene.prepared
-    kept_nodes = scene.prepared[key][1]
+    kept_nodes = scene.prepared[core.KEPT_TREE][1]
     b = mirad.solve(scene, tolerance=0.2, seed=5, **HIER)
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
-    assert scene.prepared[key][1] is kept_nodes            # (the solve grew its own copy)
+    assert scene.prepared[core.KEPT_TREE][1] is kept_nodes      # (the solve grew its own copy)
+    other = mirad.solve(scene, tolerance=0.2, seed=6, **HIER)
+    np.testing.assert_array_equal(other.triangle_radiosity,
+                                  mirad.solve(mirad.load_scene(path), tolerance=0.2, seed=6, **HIER).triangle_radiosity)
+    assert scene.prepared[core.KEPT_TREE][1] is not kept_nodes  # (one tree a scene: the last seed's)
     # in place: the tree's reflectance bounds and emitting flags change with the scene
     dark = scene.shape_index("floor")
     lit = scene.tri_emission.max(axis=1) > 0
