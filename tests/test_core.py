@@ -973,7 +973,10 @@ def test_over_a_canopys_leaves_the_estimate_covers_their_error(tmp_path):
     triangles against the path tracer (16,384 paths per triangle side). Over every shape the
     estimate (1.5 %) is a third of the leaves' measured error (4.9 %): the ground's area dilutes
     it. Over the leaves (``error_shapes="plant-*"``) it is above their measured error and within
-    2x of it (4.4 % against 3.2 % at tolerance 0.1)."""
+    2x of it (2.2 % against 1.4 % at tolerance 0.1). The leaves' 1.4 % (3.1 % before the direct
+    light's points were balanced against the gather's error, ``core.balance_direct``) holds the
+    reference's own noise (0.5 %) and the undersides' +2 % bias, which the estimate now counts
+    (``core.own_deviation``)."""
     import importlib.util
 
     from mirad.reference import triangle_reference
@@ -998,6 +1001,7 @@ def test_over_a_canopys_leaves_the_estimate_covers_their_error(tmp_path):
     err = measured(leaves)
     assert err <= leaves.stats["estimated_error"] <= 2.0 * err, (leaves.stats["estimated_error"], err)
     assert err <= tol
+    assert err < 0.02
 
 
 def test_a_receiver_whose_points_miss_a_source_in_front_of_part_of_it_takes_the_reciprocal_transfer(tmp_path):
