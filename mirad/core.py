@@ -825,6 +825,16 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         seconds_in_waves += seconds
 
 
+def _lit(pairs: list[np.ndarray]) -> list[np.ndarray]:
+    """Gathered pairs (node, source, rays, form factor, noise variance, shadow variance,
+    point values; each (M, ...)) less those that brought no light and no error: no ray of
+    theirs arrived, or their source is behind them. Every later step (source and shadow
+    splits, the gathered system, the linear sources) would only carry their zeros; in the
+    room 38 % of the first pairs, in the fine Cornell box 60 %."""
+    keep = (pairs[3] > 0) | (pairs[4] > 0) | (pairs[5] > 0)
+    return pairs if keep.all() else [a[keep] for a in pairs]
+
+
 def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray, gv_point: np.ndarray,
                     rays: np.ndarray) -> np.ndarray:
     """(M,) squared form-factor error of receivers recv's K-point quadrature of the
@@ -1486,6 +1496,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
+    evaluated += len(pair_node)
     seconds_in_waves += seconds
     seconds_in_waves += _resample_noisy(state, solved, pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts,
                                         b_src, h_node)
@@ -1494,7 +1505,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
     # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
-    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts]
+    pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts])
     kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
@@ -1515,8 +1526,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         own, slot = np.nonzero(kids >= 0)
         k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
         k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        evaluated += len(k_node)
         seconds_in_waves += k_seconds
-        pairs_now = [k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts]
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
     kept.append(pairs_now)
     pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
                                                                     for i in range(7))
@@ -1560,11 +1572,10 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node)
         seconds_in_waves += k_seconds
         evaluated += len(k_node)
-        pairs_now = [k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts]
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
     kept.append(pairs_now)
     pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
                                                                     for i in range(7))
-    gathered_pairs = len(pair_node)
     n = len(nodes)
     final_leaves = nodes.leaves
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
@@ -1638,7 +1649,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     state.timing["transfer"] += seconds_in_waves
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time - \
         (state.timing["direct"] - direct_before)
-    return Gathered(h_leaf, noise, int(iterations), gathered_pairs + evaluated, final_leaves, final,
+    return Gathered(h_leaf, noise, int(iterations), evaluated, final_leaves, final,
                     inner[links.recv], source_power, int(iterations_max))
 
 
