@@ -510,6 +510,20 @@ def resample_split_direct(state: State, ids: np.ndarray, budget: float) -> None:
             direct(state, todo[want == samples], int(samples))
 
 
+def field_leaves(state: State, leaves: np.ndarray) -> np.ndarray:
+    """(L,) bool: leaves that a point or spot light reaches (``direct_bound``) and that can
+    still split: their direct light's field, not only its mean, is resolved by smaller leaves."""
+    nodes = state.nodes
+    return (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & \
+        nodes.splittable(state.min_area)[leaves]
+
+
+def direct_sample_cap(state: State, leaves: np.ndarray) -> np.ndarray:
+    """(L,) the most direct-light points a leaf takes before it is split (``field_leaves``:
+    SPLIT_DIRECT_SAMPLES) or for good (MAX_DIRECT_SAMPLES)."""
+    return np.where(field_leaves(state, leaves), SPLIT_DIRECT_SAMPLES, MAX_DIRECT_SAMPLES)
+
+
 def balance_direct(state: State, leaves: np.ndarray, gathered_error: float) -> None:
     """More points for the direct light of point/spot/sun/sky emitters on every leaf it
     reaches, four times at a time, while its summed error (W) per ray it has cost is above the
@@ -527,10 +541,7 @@ def balance_direct(state: State, leaves: np.ndarray, gathered_error: float) -> N
     time; plant-canopy at 0.1: 1.44 -> 0.78 % per triangle."""
     if not state.scene.light_emitters or not len(leaves):
         return
-    nodes = state.nodes
-    splits = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & \
-        nodes.splittable(state.min_area)[leaves]
-    cap = np.where(splits, SPLIT_DIRECT_SAMPLES, MAX_DIRECT_SAMPLES)
+    cap = direct_sample_cap(state, leaves)
     error = direct_power_errors(state, leaves)
     lit = (channel_max(state.direct[leaves]) > 0) | (error > 0)
     while float(error.sum()) * max(state.rays - state.direct_rays, 1) > gathered_error * max(state.direct_rays, 1):
@@ -552,10 +563,7 @@ def direct_power_errors(state: State, leaves: np.ndarray) -> np.ndarray:
     more points or smaller leaves (``split_direct``) resolve its fall-off or cone edge, so that
     the leaves show the field and not only its mean. A sun's or sky's shadow across a leaf is
     left to the mean's error: splitting for it would chase every leaf of a canopy."""
-    nodes = state.nodes
-    field = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & \
-        nodes.splittable(state.min_area)[leaves]
-    error = np.where(field[:, None], state.direct_spread[leaves], state.direct_error[leaves])
+    error = np.where(field_leaves(state, leaves)[:, None], state.direct_spread[leaves], state.direct_error[leaves])
     if ERRORS_OF == "radiosity":
         rho = state.patch_rho[state.nodes.patch[leaves]]
         sampled, weight = EXPECTED_ABS * channel_max(rho * error), channel_max(rho)
@@ -571,10 +579,8 @@ def resample_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     """Four times the points where a leaf's direct-light error exceeds eps (W)."""
     if not state.scene.light_emitters:
         return False
-    nodes = state.nodes
     # (leaves that a point or spot light reaches are split there, if they can be)
-    splits = (state.direct_bound[leaves] > 0) & (nodes.kind[leaves] == TRIANGLE) & nodes.splittable(state.min_area)[leaves]
-    cap = np.where(splits, SPLIT_DIRECT_SAMPLES, MAX_DIRECT_SAMPLES)
+    cap = direct_sample_cap(state, leaves)
     noisy = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_samples[leaves] < cap)]
     for samples in np.unique(state.direct_samples[noisy]):
         ids = noisy[state.direct_samples[noisy] == samples]
@@ -589,13 +595,11 @@ def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     which get their own points (their links stay on the parent and reach them by the push)."""
     if not state.scene.light_emitters:
         return False
-    nodes = state.nodes
     # (only leaves a point or spot light reaches: a sun's or sky's shadow noise at the most
     # points stays in the estimate, as splitting would chase the i.i.d. error bound of
     # stratified points over a whole canopy)
-    stuck = leaves[(direct_power_errors(state, leaves) > eps) & (state.direct_bound[leaves] > 0)
-                   & (state.direct_samples[leaves] >= SPLIT_DIRECT_SAMPLES) & (nodes.kind[leaves] == TRIANGLE)]
-    stuck = stuck[nodes.splittable(state.min_area)[stuck]]
+    stuck = leaves[(direct_power_errors(state, leaves) > eps) & field_leaves(state, leaves)
+                   & (state.direct_samples[leaves] >= SPLIT_DIRECT_SAMPLES)]
     _split_leaves(state, stuck)
     return len(stuck) > 0
 
@@ -1404,7 +1408,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (and how the direct light varies inside the leaves below a node, a sun's shadow on them,
     # ``own_deviation``: no gradient sends it, so it errs to first order in the kernel's change.
     # Left out, a 40-leaf canopy's leaves read 1.36 % for an estimate of 0.64 %, their undersides
-    # +2.7 % high; with it 2.2 %. What makes the undersides high is not pinned down yet)
+    # +2.7 % high; with it 2.2 %. The undersides are high where one pair brings a ground cluster's
+    # mean to a steep underside facing the leaves' shadows on it: validation/RESULTS.md)
     own_varies = (below @ (open_area * own_deviation(state, leaves))) / np.maximum(visible, 1e-300) / \
         np.maximum(channel_max(solved.b_node), 1e-300)
     fitted = gradient_sent(state, below, leaves) if LINEAR_SOURCES else np.zeros(n, bool)
