@@ -32,6 +32,12 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 _TINY = 1e-30
+#: Rays over a point's hemisphere that must all meet the back of a one-sided surface, beside
+#: its ray along the normal, for the point to count as buried (``_buried``): cosine-weighted
+#: and stratified, the most grazing at asin(sqrt(1 / (2 K))) (14.5 degrees for K = 8), so a
+#: point whose hemisphere is open in less than about 1 / (2 K) of its cosine-weighted
+#: measure, and which so gets less than that share of the light around it, is taken as enclosed.
+BURIED_DIRECTIONS = 8
 
 
 @dataclass
@@ -326,7 +332,8 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key):
 def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:
     """(N,) fraction of each node's points (N, S, 3), with normals (N, S, 3), that lie
     inside closed geometry: a ray from the point along its normal first meets the back of a
-    one-sided surface (the floor under a box standing on it).
+    one-sided surface (the floor under a box standing on it), and so does every ray of a set
+    spread over its hemisphere (``_buried``).
 
     That part of a surface is seen from nowhere; its radiosity is zero, so the light a
     node sends is its power over the area that is not buried (``core.solve``)."""
@@ -362,7 +369,10 @@ def blocked(mi_scene, start: np.ndarray, end: np.ndarray, normal: np.ndarray, of
 def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: int, offset: float) -> np.ndarray:
     """(M,) ``buried_fraction`` of triangle nodes ids from ``count`` stratified points on
     each (a Hammersley set shifted per node, on the true surface of curved patches), made
-    and counted in the wave: only the shares come back."""
+    and counted in the wave: only the shares come back. It measures the nodes that
+    ``buried_fraction`` found partly buried, whose enclosure the rays around their points
+    confirmed: how much of each lies under the enclosing surface, from the points' rays
+    along the normal alone."""
     m = len(ids)
     out = np.zeros(m)
     per_launch = max(1, MAX_LANES // max(count, 1))
@@ -372,17 +382,47 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
         node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
         key = hash_u32(node ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995))
         y, n, _ = source_point(buf, node, lane % count, count, key)
-        inside = _buried(mi_scene, y, n, offset)
+        inside = _buried(mi_scene, y, n, offset, enclosed=False)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
     return out
 
 
-def _buried(mi_scene, p, d, offset: float):
-    """mi.Bool: points p (normals d) whose ray along the normal first meets the back of a
-    one-sided surface."""
-    ray = mi.Ray3f(p + d * offset, d)
+def _meets_back(mi_scene, p, w, d, offset: float):
+    """mi.Bool: rays from points p (normals d, lifted ``offset`` along them) in directions w
+    whose first hit is the back of a one-sided surface."""
+    ray = mi.Ray3f(p + d * offset, w)
     si = mi_scene.ray_intersect(ray)
     flags = si.bsdf(ray).flags()
     # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
     # geometric normal si.n points the other way)
-    return si.is_valid() & (dr.dot(si.sh_frame.n, d) > 0) & ((flags & int(mi.BSDFFlags.BackSide)) == 0)
+    return si.is_valid() & (dr.dot(si.sh_frame.n, w) > 0) & ((flags & int(mi.BSDFFlags.BackSide)) == 0)
+
+
+def _buried(mi_scene, p, d, offset: float, *, enclosed: bool = True):
+    """mi.Bool: points p (normals d) inside closed geometry: their ray along the normal first
+    meets the back of a one-sided surface (the floor under a box standing on it) and, with
+    ``enclosed``, so does each of BURIED_DIRECTIONS rays spread over their hemisphere (the
+    normal's ray alone read the ceiling above a one-sided lamp hung below it as enclosed, and
+    gave it no light). Only the points whose normal's ray meets a back trace the others."""
+    inside = _meets_back(mi_scene, p, d, d, offset)
+    if not enclosed:
+        return inside
+    candidates = dr.compress(inside)
+    count = dr.width(candidates)
+    if count == 0:
+        return inside
+    # (one ray per lane, BURIED_DIRECTIONS lanes a candidate)
+    lane = dr.arange(mi.UInt32, count * BURIED_DIRECTIONS)
+    point = dr.gather(mi.UInt32, candidates, lane // BURIED_DIRECTIONS)
+    k = mi.Float(lane % BURIED_DIRECTIONS)
+    u = (k + 0.5) / BURIED_DIRECTIONS
+    turn = k * 0.6180339887498949
+    phi = 2.0 * math.pi * (turn - dr.floor(turn))
+    sin_t = dr.sqrt(u)
+    local = mi.Vector3f(sin_t * dr.cos(phi), sin_t * dr.sin(phi), dr.sqrt(1.0 - u))
+    pc, dc = dr.gather(type(p), p, point), dr.gather(type(d), d, point)
+    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset), 1.0, 0.0),
+                         BURIED_DIRECTIONS)
+    out = dr.zeros(mi.Bool, dr.width(inside))
+    dr.scatter(out, backs == BURIED_DIRECTIONS, candidates)
+    return out
