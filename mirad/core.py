@@ -35,8 +35,8 @@ from tqdm.auto import tqdm
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
                     build_nodes, split_triangles)
-from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose,
-                     distance_to_source, face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
+from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
+                     face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
                      refinement_threshold, unresolved, unseen_in_front, visible_fraction, volume_transfer_std)
 from .scene import Scene
 from .errors import SettingsError, warn
@@ -240,6 +240,7 @@ def output_weights(state: State, solved: "Solved", gain: float) -> np.ndarray:
     reach = solved.system.pull @ reach_leaf
     rho = nodes.rho_max.astype(np.float64)
     return np.where(counted, 1.0, rho * np.minimum(reach + (gain - 1.0) * mean_reach, gain))
+
 
 def _buffers(state: State) -> NodeBuffers:
     """The nodes in Dr.Jit, uploaded again when their count changed."""
