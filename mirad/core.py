@@ -812,9 +812,11 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     # like a shadow, resolved by splitting the leaf. (Left out, a row of 1 cm lamps 3 cm in
     # front of a wall's top edge reached it 49 % short, and a thousand of them along a room's
     # walls made 1.9 % more light than they emit.) Periodic sources' images have no source side.
-    near = np.flatnonzero(~vol & (nodes.kind[patch] == TRIANGLE) & (ff > 0) & unresolved(nodes, patch, src) &
-                          (distance_to_source(nodes, patch, src) > 2.0 * nodes.radius[src]))
-    if len(near) and state.periodic is None:
+    near = np.flatnonzero(~vol & (nodes.kind[patch] == TRIANGLE) & (ff > 0) & (state.periodic is None))
+    if len(near):
+        near = near[unresolved(nodes, patch[near], src[near])]
+        near = near[distance_to_source(nodes, patch[near], src[near]) > 2.0 * nodes.radius[src[near]]]
+    if len(near):
         reverse = reverse_form_factor(_buffers(state), patch[near], src[near], state.offset)
         missed = reciprocal_error(nodes, patch[near], src[near], ff[near], ff_unocc[near], reverse)
         spatial[near] = np.maximum(spatial[near], (b[near] * missed) ** 2)
@@ -1540,8 +1542,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # they missed; from a row of small lamps 3 cm in front of a wall's top edge such pairs
         # brought 70 % too little)
         volume = nodes.kind[pair_src] == VOLUME
-        split = (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & \
-            (((overhang | uneven) & ~volume) | (volume & unresolved(nodes, pair_node, pair_src)))
+        near_volume = np.zeros(len(pair_src), bool)
+        near_volume[volume] = unresolved(nodes, pair_node[volume], pair_src[volume])
+        split = (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (((overhang | uneven) & ~volume) | near_volume)
         kept.append([a[~split] for a in pairs_now])
         if not split.any():
             pairs_now = [a[:0] for a in pairs_now]
