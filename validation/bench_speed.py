@@ -1,12 +1,19 @@
 """Speed at equal error: mirad's hierarchical core against Mitsuba's path tracer, in one run.
 
 For each scene: a cached high-sample path-traced reference per input triangle; then, both
-sides warmed up (one untimed run each), mirad at a sweep of tolerances and the path tracer as
+sides warmed up (one untimed run each; a garbage collection before every timed run, so that
+neither side pays for the other's garbage), mirad at a sweep of tolerances and the path tracer as
 a per-triangle estimator (independent seed) at a sweep of samples per triangle, each timed
 and measured against the reference (area-weighted relative L1 per triangle over the mean of
 B, and over the mean of B - E). The time each side needs for 1 % (log-log interpolation
 between the sweep points) and their ratio are printed; ``--record`` appends the table with
 date and machine to validation/RESULTS.md.
+
+Per shape too: each shape's power (the sum of area times radiosity over its triangles) against
+the reference's, as a relative L1 over the shapes. mirad's rows carry it; the path tracer
+answers it as a per-shape estimator, its paths spread over each shape's triangles in proportion
+to their area (``allocation="area"``; each setting run once untimed and then timed, as a new
+path count compiles new kernels), and the time each side needs for 2 % per shape is printed.
 
 Usage (from the repository root)::
 
@@ -17,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import gc
 import sys
 import time
 import warnings
@@ -34,8 +42,8 @@ from mirad.validate import machine  # noqa: E402
 
 RESULTS = REPO / "validation" / "RESULTS.md"
 SCENES = {
-    "cornell-box": dict(tolerances=(0.3, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01), pt=(256, 1024, 4096, 16384, 65536),
-                        reference=262144),
+    "cornell-box": dict(tolerances=(0.5, 0.3, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01), pt=(256, 1024, 4096, 16384, 65536),
+                        pt_shape=(8, 32, 128, 512), reference=262144),
     "cornell-box-fine": dict(tolerances=(0.1, 0.05, 0.03, 0.02, 0.01), pt=(64, 256, 1024, 4096), reference=16384),
     "furnished-room": dict(tolerances=(0.1, 0.05, 0.03, 0.02, 0.01), pt=(64, 256, 1024, 4096), reference=16384),
     "plant-canopy": dict(tolerances=(0.1, 0.05, 0.03, 0.02), pt=(64, 256, 1024, 4096), reference=16384),
@@ -43,6 +51,10 @@ SCENES = {
     "wall-pierce": dict(tolerances=(0.1, 0.05, 0.03, 0.02), pt=(64, 256, 1024, 4096), reference=16384),
 }
 TARGET = 0.01
+#: The per-shape error each side's time is compared at.
+SHAPE_TARGET = 0.02
+#: Paths per triangle (their mean, spread by area) of the path tracer as a per-shape estimator.
+PT_SHAPE = (8, 32, 128)
 
 
 def errors(scene, value: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
@@ -51,6 +63,18 @@ def errors(scene, value: np.ndarray, reference: np.ndarray) -> tuple[float, floa
     diff = float((a * np.abs(value - reference)).sum())
     reflected = np.maximum(reference - scene.tri_emission, 0.0)
     return diff / float((a * reference).sum()), diff / max(float((a * reflected).sum()), 1e-300)
+
+
+def shape_error(scene, value: np.ndarray, reference: np.ndarray) -> float:
+    """Relative L1 of the shapes' power: sum over shapes and channels of |P - P_ref| over the
+    sum of P_ref, with P a shape's sum of triangle area times radiosity (W)."""
+    a = scene.tri_area[:, None]
+    count = int(scene.tri_shape.max()) + 1 if len(scene.tri_shape) else 0
+    power = np.stack([np.bincount(scene.tri_shape, weights=(a * value)[:, c], minlength=count)
+                      for c in range(value.shape[1])], axis=1)
+    ref = np.stack([np.bincount(scene.tri_shape, weights=(a * reference)[:, c], minlength=count)
+                    for c in range(reference.shape[1])], axis=1)
+    return float(np.abs(power - ref).sum() / max(float(ref.sum()), 1e-300))
 
 
 def time_at(target: float, seconds, errs) -> float:
@@ -67,41 +91,60 @@ def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
         warnings.simplefilter("ignore")
         mirad.solve(scene, tolerance=cfg["tolerances"][0], core=core)           # warm-up
     triangle_reference(scene, samples_per_triangle=cfg["pt"][0], seed=1)        # warm-up
-    lines = [f"| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | estimate | leaves | links "
-             f"| links/leaf | rays | where the time goes |", "|" + "---|" * 11]
-    m_sec, m_err = [], []
+    lines = [f"| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | rel. L1 per shape | estimate "
+             f"| leaves | links | links/leaf | rays | where the time goes |", "|" + "---|" * 12]
+    m_sec, m_err, m_shape = [], [], []
     for tol in cfg["tolerances"]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            gc.collect()
             t = time.perf_counter()
             sol = mirad.solve(scene, tolerance=tol, seed=0, core=core)
             dt = time.perf_counter() - t
         e_b, e_r = errors(scene, sol.triangle_radiosity, ref.radiosity)
+        e_s = shape_error(scene, sol.triangle_radiosity, ref.radiosity)
         st = sol.stats
         sec = st["seconds"]
         busy = ", ".join(f"{k} {v:.3f}" for k, v in sec.items() if k != "total" and v >= 0.001)
-        lines.append(f"| mirad | tol {tol} | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {st['estimated_error']:.2%} | "
+        lines.append(f"| mirad | tol {tol} | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {e_s:.2%} | {st['estimated_error']:.2%} | "
                      f"{st['leaves']:,} | {st['links']:,} | {st['links'] / max(st['leaves'], 1):.1f} | "
                      f"{st['rays']:,} | {busy} |")
         print(lines[-1], flush=True)
         m_sec.append(dt)
         m_err.append(e_b)
+        m_shape.append(e_s)
     p_sec, p_err = [], []
     for spp in cfg["pt"]:
+        gc.collect()
         t = time.perf_counter()
         est = triangle_reference(scene, samples_per_triangle=spp, seed=7)
         dt = time.perf_counter() - t
         e_b, e_r = errors(scene, est.radiosity, ref.radiosity)
-        lines.append(f"| path tracer | {spp} paths/triangle | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | | | | | "
+        e_s = shape_error(scene, est.radiosity, ref.radiosity)
+        lines.append(f"| path tracer | {spp} paths/triangle | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {e_s:.2%} | | | | | "
                      f"{est.paths:,} | |")
         print(lines[-1], flush=True)
         p_sec.append(dt)
         p_err.append(e_b)
+    s_sec, s_err = [], []
+    for spp in cfg.get("pt_shape", PT_SHAPE):
+        triangle_reference(scene, samples_per_triangle=spp, seed=7, allocation="area")      # warm-up
+        gc.collect()
+        t = time.perf_counter()
+        est = triangle_reference(scene, samples_per_triangle=spp, seed=7, allocation="area")
+        dt = time.perf_counter() - t
+        e_s = shape_error(scene, est.radiosity, ref.radiosity)
+        lines.append(f"| path tracer, per shape | {spp} paths/triangle by area | {dt:.3f} | | | {e_s:.2%} | | | | | "
+                     f"{est.paths:,} | |")
+        print(lines[-1], flush=True)
+        s_sec.append(dt)
+        s_err.append(e_s)
     noise = errors(scene, ref.radiosity + ref.stderr * np.sqrt(2 / np.pi), ref.radiosity)[0]
     tm, tp = time_at(TARGET, m_sec, m_err), time_at(TARGET, p_sec, p_err)
+    sm, sp_ = time_at(SHAPE_TARGET, m_sec, m_shape), time_at(SHAPE_TARGET, s_sec, s_err)
     summary = (f"**{name}** ({scene.triangle_count:,} triangles; reference {cfg['reference']:,} paths/triangle, "
                f"noise {noise:.2%}): 1 % rel. L1 per triangle: mirad ({core} core) {tm:.3f} s, path tracer {tp:.3f} s, "
-               f"ratio {tp / tm:.1f}x")
+               f"ratio {tp / tm:.1f}x; 2 % per shape: mirad {sm:.3f} s, path tracer {sp_:.3f} s, ratio {sp_ / sm:.1f}x")
     print(summary, flush=True)
     return lines, summary
 
