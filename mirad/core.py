@@ -266,12 +266,16 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
     out = Links(recv.astype(np.int32), src.astype(np.int32), *(np.zeros(len(recv), np.float32) for _ in range(5)),
                 rays.astype(np.int16), np.zeros(len(recv), np.float32))
     for r in np.unique(rays):
-        idx = np.flatnonzero(rays == r)
-        pt = _transfers(state, recv[idx], src[idx], int(r), state.settings.seed + 0x10000 * int(r))
-        state.rays += pt.rays
-        part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
-        for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread", "change"):
-            getattr(out, name)[idx] = getattr(part, name)
+        # (GATHER_CHUNK links at a time: the waves' (M, K) results and their float64
+        # temporaries over a large canopy's millions of new links were its peak memory)
+        group = np.flatnonzero(rays == r)
+        for a in range(0, len(group), GATHER_CHUNK):
+            idx = group[a:a + GATHER_CHUNK]
+            pt = _transfers(state, recv[idx], src[idx], int(r), state.settings.seed + 0x10000 * int(r))
+            state.rays += pt.rays
+            part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
+            for name in ("ff", "ff_unocc", "err_ff", "vis_std", "spread", "change"):
+                getattr(out, name)[idx] = getattr(part, name)
     # links whose source is too near for the receiver's points: the same transfer summed
     # over the source's points bounds what those points missed
     # (and links whose receiver's points all lie behind the source while part of it is in front:
@@ -743,7 +747,8 @@ class Gathered:
 
 #: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
 MAX_SHADOW_SPLITS = 6
-#: Most (receiver, source) pairs per final-gather wave (bounds its memory: ~100 B a pair).
+#: Most (receiver, source) pairs per final-gather wave, and links per refinement wave, taken
+#: at once (bounds the memory of their per-point arrays: ~600 B a pair or link).
 GATHER_CHUNK = 1 << 18
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair
 #: whose visibility noise exceeds its share of the tolerance gets more (up to GATHER_MAX_RAYS).
@@ -780,11 +785,30 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
-                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
     """Transfers patch <- src (M,) at the patches' points with ``rays`` (M,) shadow rays per
     point: (form factor with visibility (M,), variance of its visibility noise as irradiance
     (M,) W^2/m^4, variance of its points' quadrature of the visibility (``shadow_variance``),
-    or of a near small source's spot, seconds in the waves)."""
+    or of a near small source's spot, seconds in the waves, and the transfer at each point
+    with its own visibility (M, K) float32).
+
+    GATHER_CHUNK pairs at a time: every step after the waves goes pair by pair, and its
+    (M, K) float64 temporaries over all the pairs at once were a large canopy's peak memory
+    (9.2 GB at 100k leaves, 13.8 M pairs)."""
+    m = len(patch)
+    ff, var, spatial = np.zeros(m), np.zeros(m), np.zeros(m)
+    points = np.zeros((m, RECEIVER_POINTS), np.float32)
+    seconds = 0.0
+    for a in range(0, m, GATHER_CHUNK):
+        part = slice(a, a + GATHER_CHUNK)
+        ff[part], var[part], spatial[part], wave_seconds, points[part] = _evaluate_chunk(
+            state, solved, patch[part], src[part], rays[part])
+        seconds += wave_seconds
+    return ff, var, spatial, seconds, points
+
+
+def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray):
+    """``_evaluate_pairs`` of up to GATHER_CHUNK pairs."""
     nodes = state.nodes
     g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays)
     w = nodes.recv_w[patch].astype(np.float64)
@@ -1280,6 +1304,12 @@ def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     arrays) over the sources' four ``parts`` (S, 4, 4, 3) (exact form factors, times ``fill``),
     at the receivers' points, in the sources' plane ``frame`` (t1, t2) and units of their
     ``size``; scaled to the transfers' form factors ``ff`` (their visibility and weight)."""
+    if len(recv) > GATHER_CHUNK:
+        # (a chunk at a time: its (M, K, 4) form factors over a large canopy's millions of
+        # transfers were the gather's peak memory)
+        return np.concatenate([_near_moments(state, recv[a:a + GATHER_CHUNK], s_pos[a:a + GATHER_CHUNK], parts, fill,
+                                             normal, size, frame, ff[a:a + GATHER_CHUNK])
+                               for a in range(0, len(recv), GATHER_CHUNK)])
     nodes = state.nodes
     k = RECEIVER_POINTS
     if not len(recv):
