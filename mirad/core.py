@@ -869,6 +869,20 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         seconds_in_waves += seconds
 
 
+def _columns(parts: list) -> list[np.ndarray]:
+    """The columns of ``parts`` (a list of same-length lists of arrays, one per part of the
+    pairs) each concatenated over the parts; the parts' arrays are let go column by column
+    as they are copied, so that tens of millions of pairs are not held twice over."""
+    for j, p in enumerate(parts):
+        parts[j] = list(p)
+    out = []
+    for i in range(len(parts[0])):
+        out.append(np.concatenate([p[i] for p in parts]))
+        for p in parts:
+            p[i] = None
+    return out
+
+
 def _lit(pairs: list[np.ndarray]) -> list[np.ndarray]:
     """Gathered pairs (node, source, rays, form factor, noise variance, shadow variance,
     point values; each (M, ...)) less those that brought no light and no error: no ray of
@@ -1216,7 +1230,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # product runs over the pairs once)
     gather_own = sp.csc_matrix((np.ones(len(mine)), (row_of[pair_node[mine]], np.arange(len(mine)))),
                                shape=(len(fit_leaves), len(mine)))
-    own_points = points[mine].astype(np.float64)
+    # (float32 as gathered: each product with the sources' radiosity is taken in float64)
+    own_points = points[mine]
     fit_pos = leaf_pos[leaf_nodes]
     rho = state.patch_rho[nodes.patch[leaves]]                # (L', C)
     frame = (t1, t2)
@@ -1539,13 +1554,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays, origin = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own], origin[rest][own]
-    pair_node, pair_src, pair_rays, pair_link = (np.concatenate([p[i] for p in pairs]) for i in range(4))
+    pair_node, pair_src, pair_rays, pair_link = _columns(pairs)
+    del pairs
     # (a source that overhangs its triangles near the receiver is split below whatever its rays
     # say: it descends first, and only the sources that fit are evaluated)
     pair_node, pair_src, pair_rays, pair_link = overhang_descent(nodes, pair_node, pair_src, pair_rays, pair_link)
     # (partly visible links' pairs start at GATHER_RAYS per point, or at one where their link's own
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
+    del pair_link
     g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
     evaluated += len(pair_node)
     seconds_in_waves += seconds
@@ -1557,6 +1574,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # children instead, down to rectangles that fit or to triangles
     # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
     pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts])
+    del g_var, g_shadow, g_pts     # (the unfiltered arrays, before the rounds make copies)
     kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
@@ -1587,8 +1605,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         seconds_in_waves += k_seconds
         pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
-                                                                    for i in range(7))
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = _columns(kept)
     # leaves that a shadow crosses, where their points' quadrature of it errs by more than
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
@@ -1631,8 +1648,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         evaluated += len(k_node)
         pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = (np.concatenate([p[i] for p in kept])
-                                                                    for i in range(7))
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = _columns(kept)
     n = len(nodes)
     final_leaves = nodes.leaves
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
