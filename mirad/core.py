@@ -1226,10 +1226,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     row_of = np.full(n, -1, np.int64)
     row_of[fit_leaves] = np.arange(len(fit_leaves))
     mine = np.flatnonzero(row_of[pair_node] >= 0)
-    # (F, M''): each fitted leaf's own pairs, summed (one pair per column: by columns, the
-    # product runs over the pairs once)
-    gather_own = sp.csc_matrix((np.ones(len(mine)), (row_of[pair_node[mine]], np.arange(len(mine)))),
-                               shape=(len(fit_leaves), len(mine)))
+    # each fitted leaf's own pairs, in order (the row each of them adds to)
+    own_row = row_of[pair_node[mine]]
     # (float32 as gathered: each product with the sources' radiosity is taken in float64)
     own_points = points[mine]
     fit_pos = leaf_pos[leaf_nodes]
@@ -1268,10 +1266,16 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
-        b_own = (pull @ b_leaf)[src_own]                                        # (M'', C)
+        b_node = pull @ b_leaf                                                  # (N, C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        # (a channel at a time: the pairs' (M'', K) values are the largest array here)
-        hl = np.stack([gather_own @ (own_points * b_own[:, ch, None]) for ch in range(channels)], axis=2)
+        # (added pair by pair in their order, GATHER_CHUNK pairs at a time: the sums a sparse
+        # product over all of them makes, without their (M'', K) float64 values at once)
+        hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels))
+        for a in range(0, len(src_own), GATHER_CHUNK):
+            part = slice(a, a + GATHER_CHUNK)
+            b_own = b_node[src_own[part]]
+            for ch in range(channels):
+                np.add.at(hl[:, :, ch], own_row[part], own_points[part] * b_own[:, ch, None])
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1364,6 +1368,12 @@ def _far_moments(nodes: Nodes, recv: np.ndarray, s_pos: np.ndarray, centroid: np
     for d = y - x; in the sources' plane ``frame`` and units of their ``size``, scaled by ``ff``.
     The expansion holds while the kernel changes by less than itself across the source: the
     gradient is capped at 1 / R_s (a grazing receiver's centre would make it unbounded)."""
+    if len(recv) > GATHER_CHUNK:
+        # (a chunk at a time, as ``_near_moments``: the (M, 3, 3) covariances of millions of
+        # transfers were the linear sources' peak memory)
+        return np.concatenate([_far_moments(nodes, recv[a:a + GATHER_CHUNK], s_pos[a:a + GATHER_CHUNK], centroid, cov,
+                                            normal, size, frame, ff[a:a + GATHER_CHUNK])
+                               for a in range(0, len(recv), GATHER_CHUNK)])
     grad = kernel_log_gradient(nodes, recv, centroid[s_pos], size[s_pos])
     cg = np.einsum("mij,mj->mi", cov[s_pos], grad)
     weight = ff / size[s_pos]
