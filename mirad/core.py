@@ -261,7 +261,8 @@ def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: 
 
 
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
-    """One transfer wave per ray count; returns the evaluated links (same order)."""
+    """One transfer wave per ray count (GATHER_CHUNK links at a time); returns the evaluated
+    links (same order)."""
     t = time.perf_counter()
     out = Links(recv.astype(np.int32), src.astype(np.int32), *(np.zeros(len(recv), np.float32) for _ in range(5)),
                 rays.astype(np.int16), np.zeros(len(recv), np.float32))

@@ -93,6 +93,36 @@ def reached(target: float, seconds, errs) -> str:
     return f"at most {t:.3f} s" if how == "at most" else f"{t:.3f} s"
 
 
+def path_tracer_sweep(scene, ref, spps, lines: list, *, per_shape: bool) -> tuple[list, list]:
+    """The path tracer as an estimator (seed 7, independent of the reference's) at each of
+    ``spps`` paths per triangle: per triangle (the same paths on every triangle) or, with
+    ``per_shape``, per shape (paths spread by area, each setting run once untimed first); each
+    timed after a garbage collection. Appends its table rows to ``lines``; returns the seconds
+    and the errors (per triangle over the mean of B, or per shape)."""
+    options = {"allocation": "area"} if per_shape else {}
+    seconds, errs = [], []
+    for spp in spps:
+        if per_shape:
+            triangle_reference(scene, samples_per_triangle=spp, seed=7, **options)       # warm-up
+        gc.collect()
+        t = time.perf_counter()
+        est = triangle_reference(scene, samples_per_triangle=spp, seed=7, **options)
+        dt = time.perf_counter() - t
+        e_s = shape_error(scene, est.radiosity, ref.radiosity)
+        if per_shape:
+            lines.append(f"| path tracer, per shape | {spp} paths/triangle by area | {dt:.3f} | | | {e_s:.2%} "
+                         f"| | | | | {est.paths:,} | |")
+            errs.append(e_s)
+        else:
+            e_b, e_r = errors(scene, est.radiosity, ref.radiosity)
+            lines.append(f"| path tracer | {spp} paths/triangle | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {e_s:.2%} "
+                         f"| | | | | {est.paths:,} | |")
+            errs.append(e_b)
+        print(lines[-1], flush=True)
+        seconds.append(dt)
+    return seconds, errs
+
+
 def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
     scene = mirad.load_scene(str(REPO / "scenes" / name / "scene.xml"))
     ref = cached_reference(scene, samples_per_triangle=cfg["reference"], seed=12345)
@@ -122,32 +152,8 @@ def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
         m_sec.append(dt)
         m_err.append(e_b)
         m_shape.append(e_s)
-    p_sec, p_err = [], []
-    for spp in cfg["pt"]:
-        gc.collect()
-        t = time.perf_counter()
-        est = triangle_reference(scene, samples_per_triangle=spp, seed=7)
-        dt = time.perf_counter() - t
-        e_b, e_r = errors(scene, est.radiosity, ref.radiosity)
-        e_s = shape_error(scene, est.radiosity, ref.radiosity)
-        lines.append(f"| path tracer | {spp} paths/triangle | {dt:.3f} | {e_b:.2%} | {e_r:.2%} | {e_s:.2%} | | | | | "
-                     f"{est.paths:,} | |")
-        print(lines[-1], flush=True)
-        p_sec.append(dt)
-        p_err.append(e_b)
-    s_sec, s_err = [], []
-    for spp in cfg.get("pt_shape", PT_SHAPE):
-        triangle_reference(scene, samples_per_triangle=spp, seed=7, allocation="area")      # warm-up
-        gc.collect()
-        t = time.perf_counter()
-        est = triangle_reference(scene, samples_per_triangle=spp, seed=7, allocation="area")
-        dt = time.perf_counter() - t
-        e_s = shape_error(scene, est.radiosity, ref.radiosity)
-        lines.append(f"| path tracer, per shape | {spp} paths/triangle by area | {dt:.3f} | | | {e_s:.2%} | | | | | "
-                     f"{est.paths:,} | |")
-        print(lines[-1], flush=True)
-        s_sec.append(dt)
-        s_err.append(e_s)
+    p_sec, p_err = path_tracer_sweep(scene, ref, cfg["pt"], lines, per_shape=False)
+    s_sec, s_err = path_tracer_sweep(scene, ref, cfg.get("pt_shape", PT_SHAPE), lines, per_shape=True)
     noise = errors(scene, ref.radiosity + ref.stderr * np.sqrt(2 / np.pi), ref.radiosity)[0]
     tm, tp = time_at(TARGET, m_sec, m_err), time_at(TARGET, p_sec, p_err)
     sm, sp_ = time_at(SHAPE_TARGET, m_sec, m_shape), time_at(SHAPE_TARGET, s_sec, s_err)
