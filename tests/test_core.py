@@ -68,6 +68,20 @@ def test_deterministic():
     np.testing.assert_array_equal(a.triangle_radiosity, b.triangle_radiosity)
 
 
+def test_waves_taken_a_chunk_at_a_time_solve_bitwise_the_same(monkeypatch):
+    """Refinement waves, the gather's pairs and the linear sources' moments and sums are taken
+    GATHER_CHUNK rows at a time to bound their memory: every step is row by row, so chunks of a
+    few hundred rows give the very same solution as the default's one chunk."""
+    scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
+    whole = mirad.solve(scene, tolerance=0.1, seed=1, **HIER)
+    monkeypatch.setattr(core, "GATHER_CHUNK", 331)
+    chunked = mirad.solve(scene, tolerance=0.1, seed=1, **HIER)
+    assert chunked.stats["gather_pairs"] > 10 * 331 and chunked.stats["links"] > 331
+    np.testing.assert_array_equal(chunked.triangle_radiosity, whole.triangle_radiosity)
+    assert chunked.stats["estimated_error"] == whole.stats["estimated_error"]
+    assert chunked.stats["rays"] == whole.stats["rays"]
+
+
 def test_a_scene_solved_again_starts_from_its_kept_tree():
     """The node tree (and its buried shares) depends on the scene and the seed alone: the
     first solve keeps it on the scene and the next ones start from a copy, bitwise as if
