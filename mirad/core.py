@@ -270,8 +270,8 @@ def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.nda
         # (GATHER_CHUNK links at a time: the waves' (M, K) results and their float64
         # temporaries over a large canopy's millions of new links were its peak memory)
         group = np.flatnonzero(rays == r)
-        for a in range(0, len(group), GATHER_CHUNK):
-            idx = group[a:a + GATHER_CHUNK]
+        for part in _chunks(len(group)):
+            idx = group[part]
             pt = _transfers(state, recv[idx], src[idx], int(r), state.settings.seed + 0x10000 * int(r))
             state.rays += pt.rays
             part = link_values(state.nodes, recv[idx], src[idx], pt, rays[idx])
@@ -751,6 +751,11 @@ MAX_SHADOW_SPLITS = 6
 #: Most (receiver, source) pairs per final-gather wave, and links per refinement wave, taken
 #: at once (bounds the memory of their per-point arrays: ~600 B a pair or link).
 GATHER_CHUNK = 1 << 18
+
+
+def _chunks(count: int):
+    """Slices over ``count`` rows, GATHER_CHUNK at a time (none for no rows)."""
+    return (slice(a, a + GATHER_CHUNK) for a in range(0, count, GATHER_CHUNK))
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair
 #: whose visibility noise exceeds its share of the tolerance gets more (up to GATHER_MAX_RAYS).
 GATHER_RAYS = 4
@@ -775,8 +780,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
     seconds = 0.0
     for count in np.unique(rays):
         group = np.flatnonzero(rays == count)
-        for a in range(0, len(group), GATHER_CHUNK):
-            idx = group[a:a + GATHER_CHUNK]
+        for part in _chunks(len(group)):
+            idx = group[part]
             t1 = time.perf_counter()
             pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57)
             seconds += time.perf_counter() - t1
@@ -800,8 +805,7 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     ff, var, spatial = np.zeros(m), np.zeros(m), np.zeros(m)
     points = np.zeros((m, RECEIVER_POINTS), np.float32)
     seconds = 0.0
-    for a in range(0, m, GATHER_CHUNK):
-        part = slice(a, a + GATHER_CHUNK)
+    for part in _chunks(m):
         ff[part], var[part], spatial[part], wave_seconds, points[part] = _evaluate_chunk(
             state, solved, patch[part], src[part], rays[part])
         seconds += wave_seconds
@@ -1272,11 +1276,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         # (added pair by pair in their order, GATHER_CHUNK pairs at a time: the sums a sparse
         # product over all of them makes, without their (M'', K) float64 values at once)
         hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels))
-        for a in range(0, len(src_own), GATHER_CHUNK):
-            part = slice(a, a + GATHER_CHUNK)
-            b_own = b_node[src_own[part]]
-            for ch in range(channels):
-                np.add.at(hl[:, :, ch], own_row[part], own_points[part] * b_own[:, ch, None])
+        for part in _chunks(len(src_own)):
+            np.add.at(hl, own_row[part], own_points[part][:, :, None] * b_node[src_own[part]][:, None, :])
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1327,9 +1328,8 @@ def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     if len(recv) > GATHER_CHUNK:
         # (a chunk at a time: its (M, K, 4) form factors over a large canopy's millions of
         # transfers were the gather's peak memory)
-        return np.concatenate([_near_moments(state, recv[a:a + GATHER_CHUNK], s_pos[a:a + GATHER_CHUNK], parts, fill,
-                                             normal, size, frame, ff[a:a + GATHER_CHUNK])
-                               for a in range(0, len(recv), GATHER_CHUNK)])
+        return np.concatenate([_near_moments(state, recv[c], s_pos[c], parts, fill, normal, size, frame, ff[c])
+                               for c in _chunks(len(recv))])
     nodes = state.nodes
     k = RECEIVER_POINTS
     if not len(recv):
@@ -1372,9 +1372,8 @@ def _far_moments(nodes: Nodes, recv: np.ndarray, s_pos: np.ndarray, centroid: np
     if len(recv) > GATHER_CHUNK:
         # (a chunk at a time, as ``_near_moments``: the (M, 3, 3) covariances of millions of
         # transfers were the linear sources' peak memory)
-        return np.concatenate([_far_moments(nodes, recv[a:a + GATHER_CHUNK], s_pos[a:a + GATHER_CHUNK], centroid, cov,
-                                            normal, size, frame, ff[a:a + GATHER_CHUNK])
-                               for a in range(0, len(recv), GATHER_CHUNK)])
+        return np.concatenate([_far_moments(nodes, recv[c], s_pos[c], centroid, cov, normal, size, frame, ff[c])
+                               for c in _chunks(len(recv))])
     grad = kernel_log_gradient(nodes, recv, centroid[s_pos], size[s_pos])
     cg = np.einsum("mij,mj->mi", cov[s_pos], grad)
     weight = ff / size[s_pos]
@@ -1946,8 +1945,6 @@ def tree_depth(nodes: Nodes) -> int:
 def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, evaluator=None):
     """Hierarchical radiosity on a loaded scene; returns a Solution. ``evaluator``: a
     ``distributed.DaskEvaluator`` for the transfer waves (its caller closes it), or None."""
-    from .solution import Solution
-
     t_start = time.perf_counter()
     state = build(scene, settings)
     state.evaluator = evaluator
