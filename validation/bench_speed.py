@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 import mirad  # noqa: E402
+from mirad.arrays import group_sum  # noqa: E402
 from mirad.measure import time_at_error  # noqa: E402
 from mirad.reference import cached_reference, triangle_reference  # noqa: E402
 from mirad.validate import machine  # noqa: E402
@@ -68,12 +69,9 @@ def errors(scene, value: np.ndarray, reference: np.ndarray) -> tuple[float, floa
 def shape_error(scene, value: np.ndarray, reference: np.ndarray) -> float:
     """Relative L1 of the shapes' power: sum over shapes and channels of |P - P_ref| over the
     sum of P_ref, with P a shape's sum of triangle area times radiosity (W)."""
-    a = scene.tri_area[:, None]
     count = int(scene.tri_shape.max()) + 1 if len(scene.tri_shape) else 0
-    power = np.stack([np.bincount(scene.tri_shape, weights=(a * value)[:, c], minlength=count)
-                      for c in range(value.shape[1])], axis=1)
-    ref = np.stack([np.bincount(scene.tri_shape, weights=(a * reference)[:, c], minlength=count)
-                    for c in range(reference.shape[1])], axis=1)
+    power = group_sum(scene.tri_shape, value, count, weights=scene.tri_area)
+    ref = group_sum(scene.tri_shape, reference, count, weights=scene.tri_area)
     return float(np.abs(power - ref).sum() / max(float(ref.sum()), 1e-300))
 
 
