@@ -128,8 +128,8 @@ def run(name: str, cfg: dict, core: str) -> tuple[list, str]:
         warnings.simplefilter("ignore")
         mirad.solve(scene, tolerance=cfg["tolerances"][0], core=core)           # warm-up
     triangle_reference(scene, samples_per_triangle=cfg["pt"][0], seed=1)        # warm-up
-    lines = [f"| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | rel. L1 per shape | estimate "
-             f"| leaves | links | links/leaf | rays | where the time goes |", "|" + "---|" * 12]
+    lines = ["| side | setting | seconds | rel. L1 / mean B | rel. L1 / mean (B-E) | rel. L1 per shape | estimate "
+             "| leaves | links | links/leaf | rays | where the time goes |", "|" + "---|" * 12]
     m_sec, m_err, m_shape = [], [], []
     for tol in cfg["tolerances"]:
         with warnings.catch_warnings():
