@@ -864,7 +864,8 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
     while True:
         # (the leaves of one input triangle err independently: each by its share of it)
         noisy = np.flatnonzero((g_var * output_share(state, pair_node) >
-                                gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)) &
+                                gather_allowance(plausible_transfer(g_ff, g_var, b_src[pair_src]), b_src[pair_src],
+                                                 h_node[pair_node], tol)) &
                                (pair_rays < GATHER_MAX_RAYS))
         if not len(noisy):
             return seconds_in_waves
@@ -872,6 +873,20 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         g_ff[noisy], g_var[noisy], g_shadow[noisy], seconds, g_pts[noisy] = _evaluate_pairs(
             state, solved, pair_node[noisy], pair_src[noisy], pair_rays[noisy])
         seconds_in_waves += seconds
+
+
+def plausible_transfer(ff: np.ndarray, var: np.ndarray, b_src: np.ndarray) -> np.ndarray:
+    """(M,) the transfer a gathered pair's allowance (``gather_allowance``) is shared by: its
+    estimate ff (M,), or where no ray of it arrived, the standard error its noise variance var
+    (M,) W^2/m^4 gives it (as transfer, over its source's radiosity b_src (M,)).
+
+    A volume cluster all of whose rays were blocked has a noise floor, the transfer of the one
+    ray that might have turned over (``refine.volume_transfer_std``): what the pair may bring.
+    An allowance shared by its estimate alone is 0, which no number of rays meets: on the
+    furnished room at tolerance 0.1 such pairs were taken from one ray a point to sixteen,
+    3.2 M of the solve's 7.7 M rays, 79 % of them to find nothing again."""
+    std = np.sqrt(np.maximum(var, 0.0)) / np.maximum(b_src, 1e-300)
+    return np.where(ff > 0, ff, std)
 
 
 def _columns(parts: list) -> list[np.ndarray]:
