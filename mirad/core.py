@@ -41,7 +41,7 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
 from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
-from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, point_to_polygon_dr,
+from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked, point_to_polygon_dr,
                        reverse_form_factor)
 from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
 from .cluster import sphere_form_factor_bound
@@ -1087,6 +1087,11 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     return smooth, x0, a, grad, rms
 
 
+#: Whether each leaf below a link fitted from one ray a point checks with a ray of its own that
+#: no shadow the points missed lies on it (``transfer.leaves_blocked``).
+CHECK_FITTED_SHADOWS = True
+
+
 def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centroid: np.ndarray, recv: np.ndarray,
                    x0: np.ndarray, leaf: np.ndarray, owner: np.ndarray) -> np.ndarray:
     """(P,) bool: the leaves (positions ``leaf`` (P,) in ``leaves`` (L,), their centroids
@@ -1559,6 +1564,16 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # points: the fit would carry the light across that surface)
         across = crossed_leaves(state, below, leaves, centroid, recv[ok], x0[ok], leaf, owner) & \
             (state.buried[leaves[leaf]] < 1.0)
+        # (and a leaf in a shadow that all of the receiver's points missed, where each point's one
+        # ray arrived: one ray from its centroid to the source says so)
+        if CHECK_FITTED_SHADOWS:
+            one_ray = np.flatnonzero(~whole[k] & ~across)
+            if len(one_ray):
+                across[one_ray] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[one_ray]],
+                                                 nodes.normal[leaves[leaf[one_ray]]].astype(np.float64),
+                                                 src[k[one_ray]], leaves[leaf[one_ray]] * 7919 + src[k[one_ray]],
+                                                 state.settings.seed + 0x5AD0, state.offset)
+                state.rays += len(one_ray)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
             leaf, owner, k = leaf[~across], owner[~across], k[~across]

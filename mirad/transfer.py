@@ -387,6 +387,32 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
     return out
 
 
+def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, src: np.ndarray,
+                   row: np.ndarray, seed: int, offset: float) -> np.ndarray:
+    """(M,) bool: whether the shadow ray from each point ``centroid`` (M, 3) of a surface with
+    normals ``normal`` (M, 3) to one of the stratified points of source nodes src (M,)
+    (``source_point``; which one and where on it from a hash of ``row`` (M,) and seed) is
+    blocked. A point on the source behind the surface, or the surface behind the source,
+    counts as not blocked (the ray says nothing of a shadow)."""
+    m = len(src)
+    out = np.zeros(m, bool)
+    with exact_arithmetic():
+        for a in range(0, m, MAX_LANES):
+            b = min(m, a + MAX_LANES)
+            s = to_uint(src[a:b])
+            key = hash_u32(to_uint(row[a:b]) ^ hash_u32(mi.UInt32(seed) + 0x2545F491))
+            y, ny, _ = source_point(buf, s, key % SOURCE_POINTS, SOURCE_POINTS, key)
+            x, nx = to_vector3(centroid[a:b]), to_vector3(normal[a:b])
+            o = x + nx * offset
+            d = (y + ny * offset) - o
+            dist = dr.norm(d)
+            aimed = (dr.dot(d, nx) > 0) & (dr.dot(d, ny) < 0) & (dist > 0)
+            ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
+            ray.maxt = shadow_ray_length(dist, offset)
+            out[a:b] = np.asarray(mi_scene.ray_test(ray, aimed).numpy(), bool)
+    return out
+
+
 def _meets_back(mi_scene, p, w, d, offset: float):
     """mi.Bool: rays from points p (normals d, lifted ``offset`` along them) in directions w
     whose first hit is the back of a one-sided surface."""

@@ -1161,3 +1161,32 @@ def test_a_gathered_pair_that_found_nothing_is_sampled_again_only_where_what_it_
                          np.zeros((2, core.RECEIVER_POINTS), np.float32), np.full(1, b), np.full(2, h))
     assert rays[0] == 1 and not any(0 in c for c in calls)
     assert rays[1] == core.GATHER_MAX_RAYS
+
+
+def test_a_shadow_that_all_of_a_fitted_receivers_points_missed_stays_dark(tmp_path):
+    """A 10 cm black plate 10 cm over a finely meshed floor, under a 20 cm square light 2 m up:
+    its umbra is a 9.5 cm square that the light's link on a floor cluster can miss with all of its
+    points, each of whose one ray arrived; the plane fitted through them then lit every umbra
+    triangle (up to 0.78 of the floor's mean). No light reaches the umbra (the plate is black, the
+    scene open): each leaf below such a fit checks it with a ray of its own
+    (``core.CHECK_FITTED_SHADOWS``), and the umbra's triangles take the link at their own points."""
+    sys.path.insert(0, str(SCENES / "hard-cases"))
+    sys.path.insert(0, str(SCENES / "_tools"))
+    import cases
+    from meshgen import grid
+
+    parts = {"floor": cases.part(grid((0, 0, 0), (2, 0, 0), (0, 2, 0), 60, 60), 0.5),
+             "plate": cases.part(grid((0.2, 0.2, 0.1), (0, 0.1, 0), (0.1, 0, 0), 1, 1), 0.0, twosided=True),
+             "light": cases.part(grid((0.9, 0.9, 2.0), (0, 0.2, 0), (0.2, 0, 0), 1, 1), 0.0, 10.0)}
+    scene = mirad.load_scene(cases.to_dict(tmp_path, parts))
+    sol = mirad.solve(scene, tolerance=0.1, **HIER)
+    # the umbra: the points every line to the light from which crosses the plate (the plate's edges
+    # projected onto the floor from the light's nearer edge, at 0.9 m, and its farther one, at 1.1 m)
+    k = 2.0 / (2.0 - 0.1)
+    lo, hi = 0.9 + (0.2 - 0.9) * k, 1.1 + (0.3 - 1.1) * k
+    floor = sol.triangle_shape == scene.shape_index("floor")
+    v = scene.tri_vertices
+    umbra = floor & np.all((v[..., :2] >= lo) & (v[..., :2] <= hi), axis=(1, 2))
+    assert umbra.sum() >= 8
+    h = sol.triangle_irradiance[:, 0]
+    assert h[umbra].max() <= 1e-3 * h[floor].mean()
