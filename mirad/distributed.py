@@ -182,7 +182,8 @@ def _upload_clusters(arrays: dict | None):
 
 
 #: The ``nodes.Nodes`` fields that ``transfer.NodeBuffers.upload`` reads.
-NODE_FIELDS = ("kind", "poly", "normal", "fill", "area", "recv_pts", "recv_nrm", "children", "curve")
+NODE_FIELDS = ("kind", "poly", "normal", "fill", "area", "recv_pts", "recv_nrm", "children", "curve", "center",
+               "radius", "parent")
 
 
 def node_arrays(nodes) -> dict:
@@ -190,8 +191,9 @@ def node_arrays(nodes) -> dict:
     read, as ``NodeBuffers.upload`` converts them: float32 (bitwise what it uploads), ``kind``
     uint32, ``size`` N. Shapes as in ``Nodes``: poly (N, 4, 3), recv_pts (N, K, 3), ..."""
     out = {name: np.ascontiguousarray(getattr(nodes, name), np.float32) for name in NODE_FIELDS
-           if name not in ("kind", "children")}
+           if name not in ("kind", "children", "parent")}
     out["kind"] = np.ascontiguousarray(nodes.kind, np.uint32)
+    out["parent"] = np.ascontiguousarray(nodes.parent, np.int64)
     # (a triangle's own id in place of its children: rows sent once stay valid after splits)
     from .nodes import cluster_children
 

@@ -555,6 +555,21 @@ def _cluster_points(nodes: Nodes, ids: np.ndarray, surf: Surface, order, cum, pa
             getattr(nodes, w_name)[ids] = 1.0 / count
 
 
+def flat_nodes(nodes) -> np.ndarray:
+    """(N,) bool: triangles and face clusters all of whose points lie in their plane (none of
+    their triangles has a true curved surface, ``curve``); volume clusters never."""
+    kind = np.asarray(nodes.kind)
+    curved = (kind == TRIANGLE) & (np.asarray(nodes.curve)[:, 6] > 0)
+    parent = np.asarray(nodes.parent)
+    node = np.flatnonzero(curved)
+    while len(node):                       # (each curved triangle marks its ancestors)
+        node = parent[node]
+        node = np.unique(node[node >= 0])
+        node = node[~curved[node]]
+        curved[node] = True
+    return (kind != VOLUME) & ~curved
+
+
 def cluster_children(kind: np.ndarray, children: np.ndarray) -> np.ndarray:
     """(N, 2) uint32: the two children of each cluster, and each triangle's own id (a
     triangle's children, made by splits, do not matter to where its points lie)."""

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
-from .nodes import RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children
+from .nodes import (PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
+                    flat_nodes)
 from .arrays import MAX_LANES, shadow_ray_length, to_float, to_uint, to_vector3
 from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
 
@@ -54,6 +55,8 @@ class NodeBuffers:
     recv_nrm: object
     child: tuple         # two mi.UInt32 (N,): a cluster's children (a triangle: itself)
     curve: tuple         # centre, axis (mi.Vector3f) and radius (mi.Float) of a triangle's true surface
+    sphere: tuple        # bounding-sphere centre (mi.Vector3f) and radius (mi.Float)
+    flat: object         # mi.Bool (N,): a triangle or face cluster all of whose points lie in its plane
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
@@ -65,7 +68,8 @@ class NodeBuffers:
         return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
                    to_float(nodes.fill), to_float(nodes.area), mi.UInt32(np.asarray(nodes.kind, np.uint32)),
                    points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
-                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])))
+                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
+                   (points(nodes.center), to_float(nodes.radius)), mi.Bool(flat_nodes(nodes)))
 
 
 @dataclass
@@ -208,13 +212,15 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
     pattern = pattern_size(r_count)
     t = ray_target(i, j, r_count, key)
-    y, ny, tri = source_point(buf, s, t, pattern, key)
+    # (a volume cluster's triangle is drawn by what it may send to the point, ``source_point``;
+    # a periodic source's images are drawn by area)
+    y, ny, tri, drawn = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()))
     # a volume cluster: the exact form factor of the triangle the point is on, over the
-    # probability of drawing it (its share of the cluster's area): unbiased, and bounded by
-    # the cluster's area over the triangle's where a point-to-point kernel is not (a bounded
-    # kernel A cos cos / (pi r^2 + A / S) took too little light from nearby triangles)
+    # probability of drawing it: unbiased, and bounded by the cluster's area over the
+    # triangle's times what the draw favoured it by, where a point-to-point kernel is not (a
+    # bounded kernel A cos cos / (pi r^2 + A / S) took too little light from nearby triangles)
     tri_corners = [dr.gather(mi.Vector3f, c, tri) for c in buf.poly]
-    per_area = area_s / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
+    per_area = area_s / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY) * drawn
     if periodic is not None:     # one of the source's images per ray, wrapped visibility
         from .periodic import image_visibility
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
@@ -285,9 +291,11 @@ def ray_target(i, j, rays_per_point: int, key=0):
     return (key + i * 7 + j * step) % pattern
 
 
-def source_point(buf: NodeBuffers, s, t, pattern: int, key):
-    """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each) and the
-    triangle node it is on (mi.UInt32), for the link whose hash is ``key``.
+def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
+    """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each), the
+    triangle node it is on (mi.UInt32) and the ratio (mi.Float) of the probability of
+    drawing that triangle by area to the probability it was drawn with, for the link whose
+    hash is ``key``.
 
     Each link draws its own stratified set: a Hammersley set shifted per link (every
     receiver point of a link aims at the same ``pattern`` points, so a ray to each of
@@ -296,22 +304,41 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key):
     large source is hidden, its error would be the same on every receiver, a bias that no
     number of receivers averages out. On a cluster, u picks one of its triangles with
     probability in proportion to area, descending the tree (along the tree's order, so
-    the set stays stratified over the cluster); a hash of (link, t) places the point on it."""
+    the set stays stratified over the cluster); a hash of (link, t) places the point on it.
+
+    Given receiver points x (normals nx), a volume cluster's levels split u by what each
+    child may send to x instead (``_reach``): its area over the squared distance to its
+    bounding sphere, times the largest cosine at x towards the sphere, 0 for a sphere wholly
+    behind x (whose triangles send x nothing). The draw stays unbiased (the transfer is
+    divided by the probability it was drawn with) and follows the kernel over the cluster's
+    nearer and facing parts, where drawing by area spent most samples on parts that send
+    little: a leaf under a canopy gathers from clusters of leaves around it, a few of which
+    bring most of the light. Face clusters below are drawn by area, as planar sources are."""
     u, v = shifted_hammersley(t, pattern, key)
     node = mi.UInt32(s)
     on_triangle = dr.gather(mi.UInt32, buf.kind, node) == TRIANGLE
 
-    def descend(node, left):
+    def descend(node, left, drawn):
         c0 = dr.gather(mi.UInt32, buf.child[0], node)
         c1 = dr.gather(mi.UInt32, buf.child[1], node)
         a0 = dr.gather(mi.Float, buf.area, c0)
         share = a0 / dr.maximum(a0 + dr.gather(mi.Float, buf.area, c1), _TINY)
+        by_area = share
+        if x is not None:
+            r0, r1 = _reach(buf, c0, x, nx), _reach(buf, c1, x, nx)
+            weighed = (dr.gather(mi.UInt32, buf.kind, node) == VOLUME) & (r0 + r1 > 0)
+            share = dr.select(weighed, r0 / dr.maximum(r0 + r1, _TINY), share)
         first = left < share
         nxt = dr.select(first, left / dr.maximum(share, _TINY), (left - share) / dr.maximum(1.0 - share, _TINY))
-        return dr.select(first, c0, c1), dr.clip(nxt, 0.0, 1.0 - 2 ** -24)
+        if x is not None:
+            drawn = drawn * dr.select(share == by_area, 1.0,
+                                      dr.select(first, by_area / dr.maximum(share, _TINY),
+                                                (1.0 - by_area) / dr.maximum(1.0 - share, _TINY)))
+        return dr.select(first, c0, c1), dr.clip(nxt, 0.0, 1.0 - 2 ** -24), drawn
 
-    node, _ = dr.while_loop(state=(node, mi.Float(u)),
-                            cond=lambda node, left: dr.gather(mi.UInt32, buf.kind, node) != TRIANGLE, body=descend)
+    node, _, drawn = dr.while_loop(state=(node, mi.Float(u), dr.full(mi.Float, 1.0, dr.width(node))),
+                                   cond=lambda node, left, drawn: dr.gather(mi.UInt32, buf.kind, node) != TRIANGLE,
+                                   body=descend)
     w = to_unit(hash_u32(key ^ hash_u32(t + 0x2545F491)))
     y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), dr.select(on_triangle, u, w), v)
     n = dr.gather(mi.Vector3f, buf.normal, node)
@@ -326,7 +353,36 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key):
     direction = radial / dr.maximum(rlen, _TINY)
     y = dr.select(curved, y + direction * (radius - rlen), y)
     n = dr.select(curved, dr.select(dr.dot(direction, n) < 0, -direction, direction), n)
-    return y, n, node
+    return y, n, node, drawn
+
+
+def _reach(buf: NodeBuffers, c, x, nx):
+    """mi.Float: what nodes c may send to points x (normals nx), as ``source_point`` weighs a
+    volume cluster's children, after the kernel A cos_x cos_c / r^2 over the child's bounding
+    sphere (centre at d from x, radius R): its area over max(|d|^2, R^2), times upper bounds of
+    the cosines over the sphere, (n_x . d + R) / (|d| - R) at x and, for a flat node (normal
+    n_c, x at height h over its plane), (h + b) / (|d| - R) at the node (b the plane's
+    tolerance, ``nodes.PLANE_NORMAL_TOL`` R), each clipped to [0, 1] (1 within the sphere).
+    A bound is 0 only where no part of the child can send x anything: the sphere wholly behind
+    x's tangent plane, or x behind the node's plane; x within b of the plane (on the receiver's
+    own planar group, which shares a cluster with it) weighs the node at 1/1000. Bounds, not the cosines at
+    the centre: a point 1 cm over a large floor gets much of its light from the floor just
+    below it, which the centre's grazing cosine put at a hundredth (a chair leg's foot then
+    drew the floor's few samples with large weights, and its transfer was noisy)."""
+    d = dr.gather(mi.Vector3f, buf.sphere[0], c) - x
+    radius = dr.gather(mi.Float, buf.sphere[1], c)
+    dist2 = dr.squared_norm(d)
+    gap = dr.sqrt(dist2) - radius
+    inv = dr.select(gap > 0, 1.0 / dr.maximum(gap, _TINY), dr.inf)
+    cosine = dr.clip((dr.dot(nx, d) + radius) * inv, 0.0, 1.0)
+    height = -dr.dot(dr.gather(mi.Vector3f, buf.normal, c), d)
+    # (a planar group's triangles leave its plane by up to PLANE_NORMAL_TOL of its size: x in the
+    # plane, as on the receiver's own group, gets next to nothing from it, drawn next to never)
+    bump = PLANE_NORMAL_TOL * radius
+    facing = dr.select(height > 0.1 * bump, dr.clip((height + bump) * inv, 0.0, 1.0),
+                       dr.select(height > -bump, 1e-3, 0.0))
+    cosine *= dr.select(dr.gather(mi.Bool, buf.flat, c), facing, 1.0)
+    return dr.gather(mi.Float, buf.area, c) * cosine / dr.maximum(dr.maximum(dist2, radius * radius), _TINY)
 
 
 def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:
@@ -381,7 +437,7 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
         lane = dr.arange(mi.UInt32, (b - a) * count)
         node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
         key = hash_u32(node ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995))
-        y, n, _ = source_point(buf, node, lane % count, count, key)
+        y, n, _, _ = source_point(buf, node, lane % count, count, key)
         inside = _buried(mi_scene, y, n, offset, enclosed=False)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
     return out
@@ -401,7 +457,7 @@ def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.
             b = min(m, a + MAX_LANES)
             s = to_uint(src[a:b])
             key = hash_u32(to_uint(row[a:b]) ^ hash_u32(mi.UInt32(seed) + 0x2545F491))
-            y, ny, _ = source_point(buf, s, key % SOURCE_POINTS, SOURCE_POINTS, key)
+            y, ny, _, _ = source_point(buf, s, key % SOURCE_POINTS, SOURCE_POINTS, key)
             x, nx = to_vector3(centroid[a:b]), to_vector3(normal[a:b])
             o = x + nx * offset
             d = (y + ny * offset) - o

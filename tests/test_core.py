@@ -1190,3 +1190,37 @@ def test_a_shadow_that_all_of_a_fitted_receivers_points_missed_stays_dark(tmp_pa
     assert umbra.sum() >= 8
     h = sol.triangle_irradiance[:, 0]
     assert h[umbra].max() <= 1e-3 * h[floor].mean()
+
+
+def test_a_volume_clusters_transfer_is_drawn_by_what_its_parts_send(tmp_path):
+    """A 10 cm plate 20 cm over a 40 cm floor and a 4 m emitter 20 m up: the root volume
+    cluster holds all three. Drawn by area, its triangles would almost never be the plate's
+    (0.06 % of the area, most of the transfer): the floor's transfer from it read 73 % low at a
+    ray to each of the source's 16 points from each of its 7 points, the plate never drawn. Drawn
+    by what each child may send to the point (``transfer.source_point``; the floor's own cluster,
+    in the point's plane, sends nothing) it is within 10 % of the exact sum of the triangles'
+    point-to-polygon form factors."""
+    from mirad.formfactor import point_to_polygon
+
+    sys.path.insert(0, str(SCENES / "hard-cases"))
+    sys.path.insert(0, str(SCENES / "_tools"))
+    import cases
+    from meshgen import grid
+
+    parts = {"floor": cases.part(grid((-0.2, -0.2, 0), (0.4, 0, 0), (0, 0.4, 0), 1, 1), 0.5),
+             "plate": cases.part(grid((-0.05, -0.05, 0.2), (0, 0.1, 0), (0.1, 0, 0), 1, 1), 0.5),
+             "sky": cases.part(grid((-2, -2, 20), (0, 4, 0), (4, 0, 0), 1, 1), 0.5, 1.0)}
+    scene = mirad.load_scene(cases.to_dict(tmp_path, parts))
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    root = np.flatnonzero((nodes.parent < 0) & (nodes.kind == core.VOLUME))
+    assert len(root) == 1
+    triangle = np.flatnonzero(nodes.kind == core.TRIANGLE)
+    on_floor = scene.tri_shape[scene.patch_tri[nodes.patch[triangle]]] == scene.shape_index("floor")
+    floor, others = triangle[on_floor], triangle[~on_floor]
+    links = core.evaluate_links(state, floor, np.full(len(floor), root[0]), np.full(len(floor), 16, np.int16))
+    for r, sampled in zip(floor, links.ff_unocc):
+        exact = sum(nodes.recv_w[r, k] * point_to_polygon(nodes.recv_pts[r, k], nodes.recv_nrm[r, k], nodes.poly[t, :3])
+                    for k in range(core.RECEIVER_POINTS) for t in others
+                    if nodes.normal[t] @ (nodes.recv_pts[r, k] - nodes.poly[t, 0]) > 0)
+        assert sampled == pytest.approx(exact, rel=0.1)
