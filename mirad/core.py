@@ -1293,11 +1293,13 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         channels = b_leaf.shape[1]
         b_node = pull @ b_leaf                                                  # (N, C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        # (added pair by pair in their order, GATHER_CHUNK pairs at a time: the sums a sparse
-        # product over all of them makes, without their (M'', K) float64 values at once)
+        # (added pair by pair in their order, one point and channel at a time: the sums a
+        # sparse product over all of them makes, without their (M'', K, C) float64 values at once)
         hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels))
-        for part in _chunks(len(src_own)):
-            np.add.at(hl, own_row[part], own_points[part][:, :, None] * b_node[src_own[part]][:, None, :])
+        b_src = b_node[src_own]
+        for k in range(RECEIVER_POINTS):
+            for c in range(channels):
+                hl[:, k, c] = np.bincount(own_row, weights=own_points[:, k] * b_src[:, c], minlength=len(fit_leaves))
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
