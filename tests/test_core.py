@@ -69,7 +69,7 @@ def test_deterministic():
 
 
 def test_waves_taken_a_chunk_at_a_time_solve_bitwise_the_same(monkeypatch):
-    """Refinement waves, the gather's pairs and the linear sources' moments and sums are taken
+    """Refinement waves, the gather's pairs and the linear sources' moments are taken
     GATHER_CHUNK rows at a time to bound their memory: every step is row by row, so chunks of a
     few hundred rows give the very same solution as the default's one chunk."""
     scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
