@@ -41,8 +41,8 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
 from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
-from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked, point_to_polygon_dr,
-                       reverse_form_factor)
+from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked,
+                       point_to_polygon_dr, reverse_form_factor)
 from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
@@ -1571,9 +1571,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         if CHECK_FITTED_SHADOWS:
             one_ray = np.flatnonzero(~whole[k] & ~across)
             if len(one_ray):
+                checked = leaves[leaf[one_ray]]
                 across[one_ray] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[one_ray]],
-                                                 nodes.normal[leaves[leaf[one_ray]]].astype(np.float64),
-                                                 src[k[one_ray]], leaves[leaf[one_ray]] * 7919 + src[k[one_ray]],
+                                                 nodes.normal[checked].astype(np.float64), checked, src[k[one_ray]],
                                                  state.settings.seed + 0x5AD0, state.offset)
                 state.rays += len(one_ray)
         if across.any():

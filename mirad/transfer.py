@@ -307,13 +307,12 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     the set stays stratified over the cluster); a hash of (link, t) places the point on it.
 
     Given receiver points x (normals nx), a volume cluster's levels split u by what each
-    child may send to x instead (``_reach``): its area over the squared distance to its
-    bounding sphere, times the largest cosine at x towards the sphere, 0 for a sphere wholly
-    behind x (whose triangles send x nothing). The draw stays unbiased (the transfer is
-    divided by the probability it was drawn with) and follows the kernel over the cluster's
-    nearer and facing parts, where drawing by area spent most samples on parts that send
-    little: a leaf under a canopy gathers from clusters of leaves around it, a few of which
-    bring most of the light. Face clusters below are drawn by area, as planar sources are."""
+    child may send to x instead (``_reach``: 0 only where nothing of the child reaches x). The
+    draw stays unbiased (the transfer is divided by the probability it was drawn with) and
+    follows the kernel over the cluster's nearer and facing parts, where drawing by area spent
+    most samples on parts that send little: a leaf under a canopy gathers from clusters of
+    leaves around it, a few of which bring most of the light. Face clusters below are drawn by
+    area, as planar sources are."""
     u, v = shifted_hammersley(t, pattern, key)
     node = mi.UInt32(s)
     on_triangle = dr.gather(mi.UInt32, buf.kind, node) == TRIANGLE
@@ -365,10 +364,10 @@ def _reach(buf: NodeBuffers, c, x, nx):
     tolerance, ``nodes.PLANE_NORMAL_TOL`` R), each clipped to [0, 1] (1 within the sphere).
     A bound is 0 only where no part of the child can send x anything: the sphere wholly behind
     x's tangent plane, or x behind the node's plane; x within b of the plane (on the receiver's
-    own planar group, which shares a cluster with it) weighs the node at 1/1000. Bounds, not the cosines at
-    the centre: a point 1 cm over a large floor gets much of its light from the floor just
-    below it, which the centre's grazing cosine put at a hundredth (a chair leg's foot then
-    drew the floor's few samples with large weights, and its transfer was noisy)."""
+    own planar group, which shares a cluster with it) weighs the node at 1/1000. Bounds, not
+    the cosines at the centre: a point 1 cm over a large floor gets much of its light from the
+    floor just below it, which the centre's grazing cosine put at a hundredth (a chair leg's
+    foot then drew the floor's few samples with large weights, and its transfer was noisy)."""
     d = dr.gather(mi.Vector3f, buf.sphere[0], c) - x
     radius = dr.gather(mi.Float, buf.sphere[1], c)
     dist2 = dr.squared_norm(d)
@@ -443,20 +442,20 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
     return out
 
 
-def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, src: np.ndarray,
-                   row: np.ndarray, seed: int, offset: float) -> np.ndarray:
-    """(M,) bool: whether the shadow ray from each point ``centroid`` (M, 3) of a surface with
-    normals ``normal`` (M, 3) to one of the stratified points of source nodes src (M,)
-    (``source_point``; which one and where on it from a hash of ``row`` (M,) and seed) is
-    blocked. A point on the source behind the surface, or the surface behind the source,
-    counts as not blocked (the ray says nothing of a shadow)."""
+def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, recv: np.ndarray,
+                   src: np.ndarray, seed: int, offset: float) -> np.ndarray:
+    """(M,) bool: whether the shadow ray from the centroid (M, 3) of each node recv (M,), with
+    normals ``normal`` (M, 3), to one of the stratified points of source nodes src (M,)
+    (``source_point``; which one and where on it from a hash of the pair and seed) is blocked.
+    A point on the source behind the receiver, or the receiver behind the source, counts as not
+    blocked (the ray says nothing of a shadow)."""
     m = len(src)
     out = np.zeros(m, bool)
     with exact_arithmetic():
         for a in range(0, m, MAX_LANES):
             b = min(m, a + MAX_LANES)
             s = to_uint(src[a:b])
-            key = hash_u32(to_uint(row[a:b]) ^ hash_u32(mi.UInt32(seed) + 0x2545F491))
+            key = hash_u32(hash_u32(to_uint(recv[a:b]) ^ hash_u32(mi.UInt32(seed) + 0x2545F491)) + s * 0x632BE5AB)
             y, ny, _, _ = source_point(buf, s, key % SOURCE_POINTS, SOURCE_POINTS, key)
             x, nx = to_vector3(centroid[a:b]), to_vector3(normal[a:b])
             o = x + nx * offset
