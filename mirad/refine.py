@@ -229,10 +229,11 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     w (M, K): the receiver points' weights; mean, square (M, K): the mean over each point's
     rays of the sampled transfer and of its square; unoccluded (M,): the transfer had every
     ray arrived; rays (M,) per point. The samples' variance is pooled over the points (their
-    spread over the receiver counts as noise: conservative), over the sum of w^2 / R. Where
-    every ray was blocked (or none was) the samples' variance is 0 however few they were: a
-    floor of the unoccluded transfer over the ray count stands for the one that might have
-    turned over."""
+    spread over the receiver counts as noise: conservative), times ``shared_target_weight`` (as
+    if the points' rays to one target drew the same triangle: conservative too, since each point
+    draws its own, ``transfer.source_point``). Where every ray was blocked (or none was) the
+    samples' variance is 0 however few they were: a floor of the unoccluded transfer over the
+    ray count stands for the one that might have turned over."""
     f = (w * mean).sum(axis=1)
     pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
     n = RECEIVER_POINTS * rays.astype(np.float64)
