@@ -756,6 +756,8 @@ GATHER_CHUNK = 1 << 18
 def _chunks(count: int):
     """Slices over ``count`` rows, GATHER_CHUNK at a time (none for no rows)."""
     return (slice(a, a + GATHER_CHUNK) for a in range(0, count, GATHER_CHUNK))
+
+
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair
 #: whose visibility noise exceeds its share of the tolerance gets more (up to GATHER_MAX_RAYS).
 GATHER_RAYS = 4

@@ -317,27 +317,33 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     node = mi.UInt32(s)
     on_triangle = dr.gather(mi.UInt32, buf.kind, node) == TRIANGLE
 
-    def descend(node, left, drawn):
+    def kind(node):
+        return dr.gather(mi.UInt32, buf.kind, node)
+
+    def descend(node, left, drawn, weigh: bool):
         c0 = dr.gather(mi.UInt32, buf.child[0], node)
         c1 = dr.gather(mi.UInt32, buf.child[1], node)
         a0 = dr.gather(mi.Float, buf.area, c0)
         share = a0 / dr.maximum(a0 + dr.gather(mi.Float, buf.area, c1), _TINY)
         by_area = share
-        if x is not None:
+        if weigh:
             r0, r1 = _reach(buf, c0, x, nx), _reach(buf, c1, x, nx)
-            weighed = (dr.gather(mi.UInt32, buf.kind, node) == VOLUME) & (r0 + r1 > 0)
-            share = dr.select(weighed, r0 / dr.maximum(r0 + r1, _TINY), share)
+            share = dr.select(r0 + r1 > 0, r0 / dr.maximum(r0 + r1, _TINY), share)
         first = left < share
         nxt = dr.select(first, left / dr.maximum(share, _TINY), (left - share) / dr.maximum(1.0 - share, _TINY))
-        if x is not None:
+        if weigh:
             drawn = drawn * dr.select(share == by_area, 1.0,
                                       dr.select(first, by_area / dr.maximum(share, _TINY),
                                                 (1.0 - by_area) / dr.maximum(1.0 - share, _TINY)))
         return dr.select(first, c0, c1), dr.clip(nxt, 0.0, 1.0 - 2 ** -24), drawn
 
-    node, _, drawn = dr.while_loop(state=(node, mi.Float(u), dr.full(mi.Float, 1.0, dr.width(node))),
-                                   cond=lambda node, left, drawn: dr.gather(mi.UInt32, buf.kind, node) != TRIANGLE,
-                                   body=descend)
+    # (the volume clusters' levels first, weighed where x is given, then the face clusters' by
+    # area: the weights are computed only at the levels that use them)
+    state = (node, mi.Float(u), dr.full(mi.Float, 1.0, dr.width(node)))
+    state = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) == VOLUME,
+                          body=lambda node, left, drawn: descend(node, left, drawn, x is not None))
+    node, _, drawn = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) != TRIANGLE,
+                                   body=lambda node, left, drawn: descend(node, left, drawn, False))
     w = to_unit(hash_u32(key ^ hash_u32(t + 0x2545F491)))
     y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), dr.select(on_triangle, u, w), v)
     n = dr.gather(mi.Vector3f, buf.normal, node)
