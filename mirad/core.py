@@ -41,7 +41,7 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
 from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
-from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked,
+from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked, volume_samples,
                        point_to_polygon_dr, reverse_form_factor)
 from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
 from .cluster import sphere_form_factor_bound
@@ -877,6 +877,45 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         seconds_in_waves += seconds
 
 
+#: A volume cluster's gathered transfers bring each sampled triangle's own radiosity, not the
+#: cluster's mean (``sampled_triangles``).
+OWN_RADIOSITY = True
+
+
+def sampled_triangles(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
+    """Transfers recv <- src (M,) from volume clusters, as ``_evaluate_pairs`` evaluated them
+    with ``rays`` (M,) shadow rays per point (the same rays, traced again), split by the
+    triangle each arriving sample came from: (receiver (S,), triangle node (S,), transfer (S,),
+    seconds in the waves). One pair's entries sum to its transfer.
+
+    A cluster's mean radiosity stands for what a receiver sees of it only where the transfer
+    is even over the cluster: a receiver near a lamp inside a cluster of furniture sees the
+    lamp far more than the cluster's other parts, and the mean brought a room's shelves twice
+    their light (tolerance 0.9: +115 %, with each sample's own triangle +2 %)."""
+    nodes = state.nodes
+    parts, seconds = [], 0.0
+    for count in np.unique(rays):
+        group = np.flatnonzero(rays == count)
+        for part in _chunks(len(group)):
+            idx = group[part]
+            t1 = time.perf_counter()
+            kw = dict(rays_per_point=int(count), seed=state.settings.seed + 0x7E57, offset=state.offset)
+            if state.evaluator is not None:
+                link, point, tri, value, traced = state.evaluator.volume_samples(state.nodes, recv[idx], src[idx],
+                                                                                 **kw)
+            else:
+                link, point, tri, value, traced = volume_samples(state.scene.mi_scene, _buffers(state), recv[idx],
+                                                                 src[idx], periodic=state.periodic, **kw)
+            seconds += time.perf_counter() - t1
+            state.rays += traced
+            node = recv[idx][link]
+            parts.append((node, tri, nodes.recv_w[node, point] * value / float(count)))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), seconds
+    node, tri, ff = (np.concatenate(c) for c in zip(*parts))
+    return node, tri, ff, seconds
+
+
 def plausible_transfer(ff: np.ndarray, var: np.ndarray, b_src: np.ndarray) -> np.ndarray:
     """(M,) the transfer a gathered pair's allowance (``gather_allowance``) is shared by: its
     estimate ff (M,), or where no ray of it arrived, the standard error its noise variance var
@@ -1698,10 +1737,20 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
     # variance of its error: visibility noise, the shadow's quadrature, fit residuals
     recv = np.concatenate([pair_node] + [p[0] for p in stay] + [leaves[p[0]] for p in smooth_parts])
-    srcs = np.concatenate([pair_src] + [p[1] for p in stay] + [p[1] for p in smooth_parts])
-    ff = np.concatenate([g_ff] + [p[2] for p in stay] + [p[2] for p in smooth_parts])
     var_node = np.bincount(recv, weights=np.concatenate([g_var + g_shadow] + [p[3] for p in stay] +
                                                         [p[3] for p in smooth_parts]), minlength=n)
+    by_mean = np.ones(len(pair_node), bool)
+    sampled = (np.zeros(0, np.int64),) * 2 + (np.zeros(0),)
+    if OWN_RADIOSITY:
+        # a volume cluster's pairs bring each sampled triangle's radiosity (from the same rays)
+        by_triangle = np.flatnonzero((nodes.kind[pair_src] == VOLUME) & (g_ff > 0))
+        by_mean[by_triangle] = False
+        *sampled, seconds = sampled_triangles(state, pair_node[by_triangle], pair_src[by_triangle],
+                                              pair_rays[by_triangle])
+        seconds_in_waves += seconds
+    recv = np.concatenate([pair_node[by_mean], sampled[0]] + [p[0] for p in stay] + [leaves[p[0]] for p in smooth_parts])
+    srcs = np.concatenate([pair_src[by_mean], sampled[1]] + [p[1] for p in stay] + [p[1] for p in smooth_parts])
+    ff = np.concatenate([g_ff[by_mean], sampled[2]] + [p[2] for p in stay] + [p[2] for p in smooth_parts])
     # and the error of taking each source's mean, as refinement's source term at the level
     # the transfer now has (its children's deviation times the kernel's change across it, or
     # that change squared where linear_sources sends the source's gradient: mean_error_order).

@@ -259,13 +259,27 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
 def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
     """One batch of hierarchical-core links on a worker: ``transfer.evaluate``'s per-point
     arrays g, gv, gv_point, gv_square (M, K) float32 and the ray count."""
-    from .transfer import NodeBuffers, evaluate
+    from .transfer import evaluate
 
-    scene = _worker_scene(key)
-    token = nodes_payload[-1][0]
-    buffers = _cached("h" + token, lambda: NodeBuffers.upload(_NodeArrays(_assemble(nodes_payload))))
-    pt = evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point, seed=seed, offset=offset)
+    pt = evaluate(_worker_scene(key).mi_scene, _node_buffers(nodes_payload), recv, src, rays_per_point=rays_per_point,
+                  seed=seed, offset=offset)
     return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays
+
+
+def _volume_samples_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
+    """One batch of ``transfer.volume_samples`` on a worker (links indexed within the batch)."""
+    from .transfer import volume_samples
+
+    return volume_samples(_worker_scene(key).mi_scene, _node_buffers(nodes_payload), recv, src,
+                          rays_per_point=rays_per_point, seed=seed, offset=offset)
+
+
+def _node_buffers(nodes_payload):
+    """The hierarchical core's node buffers on a worker, uploaded once per node set."""
+    from .transfer import NodeBuffers
+
+    token = nodes_payload[-1][0]
+    return _cached("h" + token, lambda: NodeBuffers.upload(_NodeArrays(_assemble(nodes_payload))))
 
 
 def _preload_task(key: _SceneKey) -> int:
@@ -461,6 +475,28 @@ class DaskEvaluator:
         m = len(recv)
         if m == 0:
             return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(4)), 0)
+        results, _ = self._node_waves(_transfers_task, nodes, recv, src, rays_per_point, seed, offset)
+        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(4)),
+                              int(sum(r[4] for r in results)))
+
+    def volume_samples(self, nodes, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int, seed: int,
+                       offset: float):
+        """Same contract (and bitwise the same results) as ``transfer.volume_samples`` on
+        ``NodeBuffers.upload(nodes)``."""
+        m = len(recv)
+        if m == 0:
+            return (np.zeros(0, np.int64),) * 3 + (np.zeros(0), 0)
+        results, starts = self._node_waves(_volume_samples_task, nodes, recv, src, rays_per_point, seed, offset)
+        return (np.concatenate([r[0] + a for r, a in zip(results, starts)]),
+                *(np.concatenate([r[i] for r in results]) for i in (1, 2, 3)), int(sum(r[4] for r in results)))
+
+    def _node_waves(self, task, nodes, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
+                    offset: float) -> tuple[list, np.ndarray]:
+        """``task`` on batches of links recv <- src (M,) over the workers: their results in
+        order and the index of each batch's first link. The node
+        arrays go to them once per change of ``len(nodes)`` (just the rows added since the last
+        send, when the others are unchanged)."""
+        m = len(recv)
         t0 = time.perf_counter()
         if self._nodes[0] != len(nodes):
             self._nodes = (len(nodes), self._scatter_rows("nodes", node_arrays(nodes)))
@@ -469,14 +505,13 @@ class DaskEvaluator:
         self.timing["scatter"] += t1 - t0
         batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
         bounds = np.linspace(0, m, batches + 1).astype(np.int64)
-        futures = [self.client.submit(_transfers_task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
+        futures = [self.client.submit(task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
                                       int(seed), float(offset), pure=False)
                    for a, b in zip(bounds[:-1], bounds[1:])]
         results = self.client.gather(futures)
         self.timing["run"] += time.perf_counter() - t1
         self.batches += len(futures)
-        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(4)),
-                              int(sum(r[4] for r in results)))
+        return results, bounds[:-1]
 
     def reference(self, scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                   method: str = "outgoing", chunk: int = 4096):

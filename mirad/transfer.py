@@ -139,6 +139,36 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     return PointTransfers(g, gv, gp, g2, rays)
 
 
+def volume_samples(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
+                   seed: int, offset: float, periodic=None):
+    """The arriving samples of volume-cluster sources in the wave ``evaluate`` makes with the
+    same arguments (the same rays: each lane's draw is a hash of its link, point and ray):
+    (link (S,) int64 index into recv, receiver point (S,) int64, node sampled (S,) int64,
+    sampled transfer (S,) float64, shadow rays traced). Link m's transfer is
+    sum_i w_i gv_i, gv_i the mean of point i's R samples: its samples over R split it by the
+    node each came from (``source_point``)."""
+    k, r_count = RECEIVER_POINTS, int(rays_per_point)
+    per_launch = max(1, MAX_LANES // (k * r_count))
+    out, rays = [], 0
+    with exact_arithmetic():
+        for a in range(0, len(recv), per_launch):
+            b = min(len(recv), a + per_launch)
+            _, _, g_volume, traced, v, tri = _lanes(mi_scene, buf, recv[a:b], src[a:b], r_count, seed, offset,
+                                                    periodic)
+            value = g_volume * v
+            lane = dr.compress(value > 0)
+            tri, value, n_traced = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.Float, value, lane), \
+                dr.sum(dr.select(traced, 1.0, 0.0))
+            dr.eval(lane, tri, value, n_traced)
+            lane = np.asarray(lane.numpy(), np.int64)
+            out.append((lane // (k * r_count) + a, (lane // r_count) % k, np.asarray(tri.numpy(), np.int64),
+                        np.asarray(value.numpy(), np.float64)))
+            rays += int(round(float(n_traced[0])))
+    if not out:
+        return (np.zeros(0, np.int64),) * 3 + (np.zeros(0), 0)
+    return tuple(np.concatenate(c) for c in zip(*out)) + (rays,)
+
+
 def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, offset: float) -> np.ndarray:
     """(M, K) exact unoccluded form factors from the K points of sources src (M,) (their
     receiver points, ``nodes.recv_pts``) to the polygons of receivers recv (M,) (scaled by
@@ -168,6 +198,16 @@ def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: 
 
 
 def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None):
+    m = len(recv)
+    g_exact, kernel, g_volume, traced, v, _ = _lanes(mi_scene, buf, recv, src, r_count, seed, offset, periodic)
+    return _reduce(m, RECEIVER_POINTS, r_count, g_exact, kernel, g_volume, traced, v)
+
+
+def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None):
+    """One lane per shadow ray of links recv <- src (M,), R = r_count rays at each of the
+    receivers' K points (lane = (link K + point) R + ray): the unoccluded form factor of the
+    ray's point, its point-to-point kernel, a volume cluster's sampled transfer, whether it was
+    traced, its visibility (mi.Float, 1 where it arrives) and the triangle node it aims at."""
     m = len(recv)
     k = RECEIVER_POINTS
     per_link = k * r_count
@@ -226,7 +266,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
+        return g_exact, kernel, g_volume, traced, v, tri
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -240,7 +280,7 @@ def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offs
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = shadow_ray_length(dist, offset)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
-    return _reduce(m, k, r_count, g_exact, kernel, g_volume, traced, v)
+    return g_exact, kernel, g_volume, traced, v, tri
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
