@@ -249,15 +249,16 @@ def _buffers(state: State) -> NodeBuffers:
     return state.buffers
 
 
-def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int):
+def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
+               samples: bool = False):
     """``transfer.evaluate`` of links recv <- src (M,) on the state's nodes: in this process,
-    or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers; the
-    direct light and ``buried_fraction`` always run here)."""
+    or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers, there
+    without ``samples``; the direct light and ``buried_fraction`` always run here)."""
     if state.evaluator is not None:
         return state.evaluator.evaluate_transfers(state.nodes, recv, src, rays_per_point=rays_per_point, seed=seed,
                                                   offset=state.offset)
     return evaluate(state.scene.mi_scene, _buffers(state), recv, src, rays_per_point=rays_per_point, seed=seed,
-                    offset=state.offset, periodic=state.periodic)
+                    offset=state.offset, periodic=state.periodic, samples=samples)
 
 
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
@@ -773,11 +774,13 @@ GATHER_MAX_RAYS = SOURCE_POINTS
 GATHER_SHARE = 0.25
 
 
-def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
+def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray, found: list | None = None):
     """Transfers recv <- src (M,) at the receivers' K points with ``rays`` (M,) shadow rays
     per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
     point's own visibility (M, K), seconds in the waves, and the mean squared sampled transfer
-    of volume-cluster sources (M, K), transfer.PointTransfers.gv_square)."""
+    of volume-cluster sources (M, K), transfer.PointTransfers.gv_square). ``found``: a list to
+    which the volume clusters' arriving samples are added (``transfer.volume_samples``, their
+    links counted in recv), or None."""
     out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(4)]
     seconds = 0.0
     for count in np.unique(rays):
@@ -785,15 +788,17 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
         for part in _chunks(len(group)):
             idx = group[part]
             t1 = time.perf_counter()
-            pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57)
+            pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57, found is not None)
             seconds += time.perf_counter() - t1
             state.rays += pt.rays
             out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
+            if found is not None:
+                found.append((idx[pt.samples[0]],) + pt.samples[1:])
     return out[0], out[1], out[2], seconds, out[3]
 
 
-def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray,
-                    rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray,
+                    found: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
     """Transfers patch <- src (M,) at the patches' points with ``rays`` (M,) shadow rays per
     point: (form factor with visibility (M,), variance of its visibility noise as irradiance
     (M,) W^2/m^4, variance of its points' quadrature of the visibility (``shadow_variance``),
@@ -802,22 +807,26 @@ def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.nda
 
     GATHER_CHUNK pairs at a time: every step after the waves goes pair by pair, and its
     (M, K) float64 temporaries over all the pairs at once were a large canopy's peak memory
-    (9.2 GB at 100k leaves, 13.8 M pairs)."""
+    (9.2 GB at 100k leaves, 13.8 M pairs). ``found``: as ``_point_values``'s."""
     m = len(patch)
     ff, var, spatial = np.zeros(m), np.zeros(m), np.zeros(m)
     points = np.zeros((m, RECEIVER_POINTS), np.float32)
     seconds = 0.0
     for part in _chunks(m):
+        mine = None if found is None else []
         ff[part], var[part], spatial[part], wave_seconds, points[part] = _evaluate_chunk(
-            state, solved, patch[part], src[part], rays[part])
+            state, solved, patch[part], src[part], rays[part], mine)
+        if found is not None:
+            found.extend((f[0] + part.start,) + f[1:] for f in mine)
         seconds += wave_seconds
     return ff, var, spatial, seconds, points
 
 
-def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray):
+def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray,
+                    found: list | None = None):
     """``_evaluate_pairs`` of up to GATHER_CHUNK pairs."""
     nodes = state.nodes
-    g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays)
+    g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays, found)
     w = nodes.recv_w[patch].astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
@@ -901,11 +910,11 @@ def sampled_triangles(state: State, recv: np.ndarray, src: np.ndarray, rays: np.
             t1 = time.perf_counter()
             kw = dict(rays_per_point=int(count), seed=state.settings.seed + 0x7E57, offset=state.offset)
             if state.evaluator is not None:
-                link, point, tri, value, traced = state.evaluator.volume_samples(state.nodes, recv[idx], src[idx],
-                                                                                 **kw)
+                (link, point, tri, value), traced = state.evaluator.volume_samples(state.nodes, recv[idx], src[idx],
+                                                                                   **kw)
             else:
-                link, point, tri, value, traced = volume_samples(state.scene.mi_scene, _buffers(state), recv[idx],
-                                                                 src[idx], periodic=state.periodic, **kw)
+                (link, point, tri, value), traced = volume_samples(state.scene.mi_scene, _buffers(state), recv[idx],
+                                                                   src[idx], periodic=state.periodic, **kw)
             seconds += time.perf_counter() - t1
             state.rays += traced
             node = recv[idx][link]
@@ -914,6 +923,23 @@ def sampled_triangles(state: State, recv: np.ndarray, src: np.ndarray, rays: np.
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), seconds
     node, tri, ff = (np.concatenate(c) for c in zip(*parts))
     return node, tri, ff, seconds
+
+
+def kept_triangles(state: State, found: list, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray):
+    """``sampled_triangles`` of pairs recv (M,) (``rays`` (M,) per point) from the samples
+    their waves kept (``found``, as ``_point_values`` adds them; ``rows`` (M,) the pairs' rows
+    in those waves): (receiver (S,), triangle node (S,), transfer (S,))."""
+    link, point, tri, value = (np.concatenate(c) for c in zip(*found)) if found else \
+        ((np.zeros(0, np.int64),) * 3 + (np.zeros(0),))
+    order = np.argsort(link, kind="stable")
+    count = np.bincount(link, minlength=int(rows.max(initial=-1)) + 1)
+    start = np.cumsum(count) - count
+    per_pair = count[rows]
+    # every kept sample of each pair, in order: its row's run in the sorted samples
+    at = np.repeat(start[rows] - (np.cumsum(per_pair) - per_pair), per_pair) + np.arange(int(per_pair.sum()))
+    pick = order[at]
+    node = np.repeat(recv, per_pair)
+    return node, tri[pick], state.nodes.recv_w[node, point[pick]] * value[pick] / np.repeat(rays, per_pair)
 
 
 def plausible_transfer(ff: np.ndarray, var: np.ndarray, b_src: np.ndarray) -> np.ndarray:
@@ -1646,18 +1672,25 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     del pair_link
-    g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays)
+    # (the volume clusters' samples of these first waves are kept for ``sampled_triangles``)
+    first_samples = [] if OWN_RADIOSITY and state.evaluator is None else None
+    first_rays_of = pair_rays.copy()
+    g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays,
+                                                            first_samples)
     evaluated += len(pair_node)
     seconds_in_waves += seconds
     seconds_in_waves += _resample_noisy(state, solved, pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts,
                                         b_src, h_node)
+    # each pair's row in those waves, or -1 where it was evaluated again since
+    first_row = np.where(pair_rays == first_rays_of, np.arange(len(pair_node)), -1)
+    del first_rays_of
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
     # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
-    pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts])
-    del g_var, g_shadow, g_pts     # (the unfiltered arrays, before the rounds make copies)
+    pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row])
+    del g_var, g_shadow, g_pts, first_row     # (the unfiltered arrays, before the rounds make copies)
     kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
@@ -1686,9 +1719,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
         evaluated += len(k_node)
         seconds_in_waves += k_seconds
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, np.full(len(k_node), -1)])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = _columns(kept)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row = _columns(kept)
     # leaves that a shadow crosses, where their points' quadrature of it errs by more than
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
@@ -1700,7 +1733,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     # (as with the source splits, a pair kept once stays kept: each round looks only at the
     # pairs the last one made, on the leaves it made)
-    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts]
+    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row]
     kept = []
     for _ in range(MAX_SHADOW_SPLITS):
         pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow = pairs_now[:6]
@@ -1729,9 +1762,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node)
         seconds_in_waves += k_seconds
         evaluated += len(k_node)
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts])
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, np.full(len(k_node), -1)])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = _columns(kept)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row = _columns(kept)
     n = len(nodes)
     final_leaves = nodes.leaves
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
@@ -1743,11 +1776,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     sampled = (np.zeros(0, np.int64),) * 2 + (np.zeros(0),)
     if OWN_RADIOSITY:
         # a volume cluster's pairs bring each sampled triangle's radiosity (from the same rays)
-        by_triangle = np.flatnonzero((nodes.kind[pair_src] == VOLUME) & (g_ff > 0))
+        by_triangle = (nodes.kind[pair_src] == VOLUME) & (g_ff > 0)
         by_mean[by_triangle] = False
-        *sampled, seconds = sampled_triangles(state, pair_node[by_triangle], pair_src[by_triangle],
-                                              pair_rays[by_triangle])
+        kept_samples = np.flatnonzero(by_triangle & (first_row >= 0))
+        again = np.flatnonzero(by_triangle & (first_row < 0))
+        *sampled, seconds = sampled_triangles(state, pair_node[again], pair_src[again], pair_rays[again])
         seconds_in_waves += seconds
+        if first_samples is not None:
+            sampled = [np.concatenate(c) for c in zip(sampled, kept_triangles(
+                state, first_samples, first_row[kept_samples], pair_node[kept_samples], pair_rays[kept_samples]))]
     recv = np.concatenate([pair_node[by_mean], sampled[0]] + [p[0] for p in stay] + [leaves[p[0]] for p in smooth_parts])
     srcs = np.concatenate([pair_src[by_mean], sampled[1]] + [p[1] for p in stay] + [p[1] for p in smooth_parts])
     ff = np.concatenate([g_ff[by_mean], sampled[2]] + [p[2] for p in stay] + [p[2] for p in smooth_parts])

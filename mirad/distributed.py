@@ -483,12 +483,12 @@ class DaskEvaluator:
                        offset: float):
         """Same contract (and bitwise the same results) as ``transfer.volume_samples`` on
         ``NodeBuffers.upload(nodes)``."""
-        m = len(recv)
-        if m == 0:
-            return (np.zeros(0, np.int64),) * 3 + (np.zeros(0), 0)
+        if len(recv) == 0:
+            return (np.zeros(0, np.int64),) * 3 + (np.zeros(0),), 0
         results, starts = self._node_waves(_volume_samples_task, nodes, recv, src, rays_per_point, seed, offset)
-        return (np.concatenate([r[0] + a for r, a in zip(results, starts)]),
-                *(np.concatenate([r[i] for r in results]) for i in (1, 2, 3)), int(sum(r[4] for r in results)))
+        found = [r[0] for r in results]
+        return ((np.concatenate([f[0] + a for f, a in zip(found, starts)]),
+                 *(np.concatenate([f[i] for f in found]) for i in (1, 2, 3))), int(sum(r[1] for r in results)))
 
     def _node_waves(self, task, nodes, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
                     offset: float) -> tuple[list, np.ndarray]:

@@ -348,7 +348,7 @@ def image_form_factor(box: PeriodicBox, one):
 def image_visibility(mi_scene, box: PeriodicBox, x, nx, y, ny, planar, g_exact, tri_corners, per_area,
                      offset: float, key, volume_sample):
     """One shadow ray per lane from receiver points x (normals nx) to one image of the source
-    point y (normal ny), for ``transfer._kernel`` on a periodic scene.
+    point y (normal ny), for ``transfer._lanes`` on a periodic scene.
 
     Every image y + o_I (``PeriodicBox.images``) gets its point-to-point kernel k_I =
     cos_x cos_y / r^2 (planar sources) or, for volume clusters, the sample g_I of

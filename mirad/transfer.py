@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -82,6 +83,9 @@ class PointTransfers:
     gv_square: np.ndarray  # volume-cluster sources: mean over the point's rays of the squared
     #                        sampled transfer (its sampling variance); 0 for planar sources
     rays: int            # shadow rays traced
+    #: with ``evaluate(..., samples=True)``: the arriving samples of volume-cluster sources
+    #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,); ``volume_samples``)
+    samples: tuple | None = None
 
 
 def _edge_term(a, b, n):
@@ -119,54 +123,72 @@ def point_to_polygon_dr(x, n, corners):
 
 
 def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
-             seed: int, offset: float, periodic=None) -> PointTransfers:
+             seed: int, offset: float, periodic=None, samples: bool = False) -> PointTransfers:
     """Transfers of links recv <- src (M,) at the receivers' K points, R = rays_per_point
     shadow rays each; ``offset`` lifts ray ends off surfaces (metres). ``periodic``: a
     ``periodic.PeriodicBox`` (the link then sums the source's nearest lattice images, with
-    wrapped shadow rays; ``periodic.image_visibility``), or None."""
+    wrapped shadow rays; ``periodic.image_visibility``), or None. With ``samples``, also the
+    volume clusters' arriving samples (``PointTransfers.samples``, as ``volume_samples``)."""
     m = len(recv)
     k = RECEIVER_POINTS
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
     rays = 0
     per_launch = max(1, MAX_LANES // (k * rays_per_point))
+    found = []
     # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
     with exact_arithmetic():
         for a in range(0, m, per_launch):
             b = min(m, a + per_launch)
-            g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _kernel(mi_scene, buf, recv[a:b], src[a:b], rays_per_point,
-                                                            seed, offset, periodic)
+            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset, periodic)
+            # (the samples evaluated with the wave's sums: kept unevaluated, their rays would be traced again)
+            sampled = (lanes.g_volume * lanes.v, lanes.tri) if samples else ()
+            g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _reduce(b - a, k, rays_per_point, lanes.g_exact, lanes.kernel,
+                                                            lanes.g_volume, lanes.traced, lanes.v, *sampled)
             rays += ra
-    return PointTransfers(g, gv, gp, g2, rays)
+            if samples:
+                found.append(_arriving(*sampled, k, rays_per_point, a))
+    return PointTransfers(g, gv, gp, g2, rays, _joined(found) if samples else None)
 
 
 def volume_samples(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
                    seed: int, offset: float, periodic=None):
     """The arriving samples of volume-cluster sources in the wave ``evaluate`` makes with the
     same arguments (the same rays: each lane's draw is a hash of its link, point and ray):
-    (link (S,) int64 index into recv, receiver point (S,) int64, node sampled (S,) int64,
-    sampled transfer (S,) float64, shadow rays traced). Link m's transfer is
+    (link (S,) int64 index into recv, receiver point (S,) int64, triangle node sampled (S,)
+    int64, sampled transfer (S,) float64), and the shadow rays traced. Link m's transfer is
     sum_i w_i gv_i, gv_i the mean of point i's R samples: its samples over R split it by the
-    node each came from (``source_point``)."""
+    triangle each came from (``source_point``)."""
     k, r_count = RECEIVER_POINTS, int(rays_per_point)
     per_launch = max(1, MAX_LANES // (k * r_count))
-    out, rays = [], 0
+    found, rays = [], 0
     with exact_arithmetic():
         for a in range(0, len(recv), per_launch):
             b = min(len(recv), a + per_launch)
-            _, _, g_volume, traced, v, tri = _lanes(mi_scene, buf, recv[a:b], src[a:b], r_count, seed, offset,
-                                                    periodic)
-            value = g_volume * v
-            lane = dr.compress(value > 0)
-            tri, value, n_traced = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.Float, value, lane), \
-                dr.sum(dr.select(traced, 1.0, 0.0))
-            dr.eval(lane, tri, value, n_traced)
-            lane = np.asarray(lane.numpy(), np.int64)
-            out.append((lane // (k * r_count) + a, (lane // r_count) % k, np.asarray(tri.numpy(), np.int64),
-                        np.asarray(value.numpy(), np.float64)))
+            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], r_count, seed, offset, periodic)
+            value, n_traced = lanes.g_volume * lanes.v, dr.sum(dr.select(lanes.traced, 1.0, 0.0))
+            dr.eval(value, lanes.tri, n_traced)
+            found.append(_arriving(value, lanes.tri, k, r_count, a))
             rays += int(round(float(n_traced[0])))
-    if not out:
-        return (np.zeros(0, np.int64),) * 3 + (np.zeros(0), 0)
-    return tuple(np.concatenate(c) for c in zip(*out)) + (rays,)
+    return _joined(found), rays
+
+
+def _arriving(value, tri, k: int, r_count: int, first: int):
+    """The lanes whose volume-cluster sample ``value`` (mi.Float, evaluated, with the triangle
+    node ``tri`` it is on) arrived, as numpy: (link (S,), counted from ``first``; point (S,);
+    triangle node (S,); sampled transfer (S,))."""
+    lane = dr.compress(value > 0)
+    tri, value = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.Float, value, lane)
+    dr.eval(lane, tri, value)
+    lane = np.asarray(lane.numpy(), np.int64)
+    return (lane // (k * r_count) + first, (lane // r_count) % k, np.asarray(tri.numpy(), np.int64),
+            np.asarray(value.numpy(), np.float64))
+
+
+def _joined(found: list) -> tuple:
+    """``_arriving``'s parts concatenated, column by column (empty arrays for none)."""
+    if not found:
+        return (np.zeros(0, np.int64),) * 3 + (np.zeros(0),)
+    return tuple(np.concatenate(c) for c in zip(*found))
 
 
 def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, offset: float) -> np.ndarray:
@@ -197,17 +219,22 @@ def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: 
     return dr.select(planar & front, point_to_polygon_dr(x, nx, corners) * dr.gather(mi.Float, buf.fill, s), 0.0)
 
 
-def _kernel(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None):
-    m = len(recv)
-    g_exact, kernel, g_volume, traced, v, _ = _lanes(mi_scene, buf, recv, src, r_count, seed, offset, periodic)
-    return _reduce(m, RECEIVER_POINTS, r_count, g_exact, kernel, g_volume, traced, v)
+class Lanes(NamedTuple):
+    """A wave's lanes, one per shadow ray (``_lanes``), in Dr.Jit."""
+
+    g_exact: object      # mi.Float: a planar source's exact unoccluded form factor at the ray's point
+    kernel: object       # mi.Float: the point-to-point kernel cos cos / r^2 to the ray's target
+    g_volume: object     # mi.Float: a volume cluster's sampled transfer (``volume_sample``), else 0
+    traced: object       # mi.Bool: a ray was traced
+    v: object            # mi.Float: 1 where it arrived
+    tri: object          # mi.UInt32: the triangle node the target is on
+    y: object            # mi.Vector3f: the target point on the source, and its normal
+    ny: object
 
 
-def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None):
+def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None) -> Lanes:
     """One lane per shadow ray of links recv <- src (M,), R = r_count rays at each of the
-    receivers' K points (lane = (link K + point) R + ray): the unoccluded form factor of the
-    ray's point, its point-to-point kernel, a volume cluster's sampled transfer, whether it was
-    traced, its visibility (mi.Float, 1 where it arrives) and the triangle node it aims at."""
+    receivers' K points (lane = (link K + point) R + ray)."""
     m = len(recv)
     k = RECEIVER_POINTS
     per_link = k * r_count
@@ -266,7 +293,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return g_exact, kernel, g_volume, traced, v, tri
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri, y, ny)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -280,7 +307,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = shadow_ray_length(dist, offset)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
-    return g_exact, kernel, g_volume, traced, v, tri
+    return Lanes(g_exact, kernel, g_volume, traced, v, tri, y, ny)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
@@ -292,12 +319,13 @@ def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
     return dr.select(~planar & front, point_to_polygon_dr(x, nx, tri_corners) * per_area, 0.0)
 
 
-def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v):
+def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v, *also):
     """The wave's per-ray lanes summed per receiver point and combined there, in Dr.Jit; back
-    in numpy as four (M, K) float32 arrays (see ``_kernel``)."""
+    in numpy as four (M, K) float32 arrays (see ``_lanes``). ``also``: further per-lane
+    values evaluated in the same kernel."""
     lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
              dr.select(traced, 1.0, 0.0)]
-    dr.eval(*lanes)
+    dr.eval(*lanes, *also)
     g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in lanes[:6])
     n_traced = dr.sum(lanes[6])
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link

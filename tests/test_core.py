@@ -532,13 +532,17 @@ def test_volume_samples_split_their_waves_transfer_by_triangle():
     buf = NodeBuffers.upload(nodes)
     for rays in (1, 4):
         pt = evaluate(scene.mi_scene, buf, recv, src, rays_per_point=rays, seed=7, offset=state.offset)
-        link, point, tri, value, traced = volume_samples(scene.mi_scene, buf, recv, src, rays_per_point=rays, seed=7,
-                                                         offset=state.offset)
+        (link, point, tri, value), traced = volume_samples(scene.mi_scene, buf, recv, src, rays_per_point=rays,
+                                                           seed=7, offset=state.offset)
         transfer = (nodes.recv_w[recv] * pt.gv).sum(axis=1)
         split = np.bincount(link, weights=nodes.recv_w[recv[link], point] * value / rays, minlength=len(recv))
         assert (transfer > 0).sum() > 100
         np.testing.assert_allclose(split, transfer, rtol=1e-5, atol=1e-9)
         assert traced == pt.rays
+        with_samples = evaluate(scene.mi_scene, buf, recv, src, rays_per_point=rays, seed=7, offset=state.offset,
+                                samples=True)
+        for mine, theirs in zip(with_samples.samples, (link, point, tri, value)):
+            np.testing.assert_array_equal(mine, theirs)
         assert (nodes.kind[tri] == core.TRIANGLE).all()
         ancestor = tri.copy()
         for _ in range(core.tree_depth(nodes)):
@@ -1085,10 +1089,10 @@ def test_the_gather_evaluates_no_pair_only_to_split_its_source(monkeypatch):
     first = []
     original = core._evaluate_pairs
 
-    def spy(state, solved, patch, src, rays):
+    def spy(state, solved, patch, src, rays, found=None):
         if not first:
             first.append((state.nodes, patch.copy(), src.copy()))
-        return original(state, solved, patch, src, rays)
+        return original(state, solved, patch, src, rays, found)
 
     monkeypatch.setattr(core, "_evaluate_pairs", spy)
     mirad.solve(SCENES / "furnished-room" / "scene.xml", tolerance=0.2, **HIER)
