@@ -863,13 +863,28 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     return ff, var, spatial, seconds, gv_point
 
 
+def _logged_pairs(state: State, solved: Solved, log: "SampleLog | None", patch: np.ndarray, src: np.ndarray,
+                  rays: np.ndarray):
+    """``_evaluate_pairs`` of pairs patch <- src (M,) with their volume samples recorded in
+    ``log`` (or None): its five results and the pairs' rows in the log (M,) (-1 without one)."""
+    if log is None:
+        return _evaluate_pairs(state, solved, patch, src, rays) + (np.full(len(patch), -1, np.int64),)
+    found = []
+    out = _evaluate_pairs(state, solved, patch, src, rays, found)
+    rows = log.rows(len(patch))
+    log.record(rows, found)
+    return out + (rows,)
+
+
 def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_src: np.ndarray, pair_rays: np.ndarray,
                     g_ff: np.ndarray, g_var: np.ndarray, g_shadow: np.ndarray, g_pts: np.ndarray, b_src: np.ndarray,
-                    h_node: np.ndarray) -> float:
+                    h_node: np.ndarray, log: "SampleLog | None" = None, rows: np.ndarray | None = None) -> float:
     """Pairs (M,) whose rays disagreed more than their share of the tolerance allows are
     evaluated again with GATHER_RAYS times the rays, up to a ray to each of the source's
     points (a quadrature, not a sample); ``pair_rays`` and the pairs' results (as
-    ``_evaluate_pairs`` returns them) are updated in place. Returns the seconds in waves."""
+    ``_evaluate_pairs`` returns them) are updated in place, and their volume samples
+    recorded in ``log`` (their rows there ``rows`` (M,)) where one is given. Returns the
+    seconds in waves."""
     tol = state.settings.tolerance
     seconds_in_waves = 0.0
     while True:
@@ -881,8 +896,11 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         if not len(noisy):
             return seconds_in_waves
         pair_rays[noisy] = np.minimum(GATHER_RAYS * pair_rays[noisy], GATHER_MAX_RAYS)
+        found = None if log is None else []
         g_ff[noisy], g_var[noisy], g_shadow[noisy], seconds, g_pts[noisy] = _evaluate_pairs(
-            state, solved, pair_node[noisy], pair_src[noisy], pair_rays[noisy])
+            state, solved, pair_node[noisy], pair_src[noisy], pair_rays[noisy], found)
+        if log is not None:
+            log.record(rows[noisy], found)
         seconds_in_waves += seconds
 
 
@@ -918,28 +936,52 @@ def sampled_triangles(state: State, recv: np.ndarray, src: np.ndarray, rays: np.
             seconds += time.perf_counter() - t1
             state.rays += traced
             node = recv[idx][link]
-            parts.append((node, tri, nodes.recv_w[node, point] * value / float(count)))
+            parts.append((node, tri, nodes.recv_w[node, point] * value / np.float32(count)))
     if not parts:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), seconds
+        return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32), seconds
     node, tri, ff = (np.concatenate(c) for c in zip(*parts))
     return node, tri, ff, seconds
 
 
-def kept_triangles(state: State, found: list, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray):
-    """``sampled_triangles`` of pairs recv (M,) (``rays`` (M,) per point) from the samples
-    their waves kept (``found``, as ``_point_values`` adds them; ``rows`` (M,) the pairs' rows
-    in those waves): (receiver (S,), triangle node (S,), transfer (S,))."""
-    link, point, tri, value = (np.concatenate(c) for c in zip(*found)) if found else \
-        ((np.zeros(0, np.int64),) * 3 + (np.zeros(0),))
-    order = np.argsort(link, kind="stable")
-    count = np.bincount(link, minlength=int(rows.max(initial=-1)) + 1)
-    start = np.cumsum(count) - count
-    per_pair = count[rows]
-    # every kept sample of each pair, in order: its row's run in the sorted samples
-    at = np.repeat(start[rows] - (np.cumsum(per_pair) - per_pair), per_pair) + np.arange(int(per_pair.sum()))
-    pick = order[at]
-    node = np.repeat(recv, per_pair)
-    return node, tri[pick], state.nodes.recv_w[node, point[pick]] * value[pick] / np.repeat(rays, per_pair)
+class SampleLog:
+    """The volume clusters' arriving samples of the final gather's waves (``_point_values``'s
+    ``found``), so that ``sampled_triangles`` need not trace their pairs' rays again. Every
+    pair the gather evaluates gets a row (``rows``), or -1 (not recorded: evaluated on Dask
+    workers); a row's samples are those of its last wave (more rays replace fewer)."""
+
+    def __init__(self) -> None:
+        self.waves: list = []                    # (rows (m,), found) per recorded wave
+        self.last = np.zeros(0, np.int64)        # (R,) each row's last wave
+
+    def rows(self, count: int) -> np.ndarray:
+        """(count,) new rows."""
+        start = len(self.last)
+        self.last = np.concatenate([self.last, np.full(count, -1, np.int64)])
+        return np.arange(start, start + count)
+
+    def record(self, rows: np.ndarray, found: list) -> None:
+        """The samples ``found`` of one wave over pairs of rows ``rows`` (their links counted in rows)."""
+        self.last[rows] = len(self.waves)
+        self.waves.append((rows, found))
+
+    def split(self, state: State, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray):
+        """``sampled_triangles`` of pairs recv (M,) (``rays`` (M,) per point) from the samples
+        of rows ``rows`` (M,): (receiver (S,), triangle node (S,), transfer (S,))."""
+        pair_of = np.full(len(self.last), -1, np.int64)     # each row's pair, or -1
+        pair_of[rows] = np.arange(len(rows))
+        # (each pair's point weights over its rays per point, looked up per sample)
+        weight = (state.nodes.recv_w[recv] / rays[:, None].astype(np.float32)).ravel()
+        parts = []
+        for wave, (wave_rows, found) in enumerate(self.waves):
+            for link, point, tri, value in found:
+                row = wave_rows[link]
+                pair = pair_of[row]
+                keep = (pair >= 0) & (self.last[row] == wave)
+                pair = pair[keep]
+                parts.append((recv[pair], tri[keep], weight[pair * RECEIVER_POINTS + point[keep]] * value[keep]))
+        if not parts:
+            return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32)
+        return tuple(np.concatenate(c) for c in zip(*parts))
 
 
 def plausible_transfer(ff: np.ndarray, var: np.ndarray, b_src: np.ndarray) -> np.ndarray:
@@ -1672,25 +1714,20 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     del pair_link
-    # (the volume clusters' samples of these first waves are kept for ``sampled_triangles``)
-    first_samples = [] if OWN_RADIOSITY and state.evaluator is None else None
-    first_rays_of = pair_rays.copy()
-    g_ff, g_var, g_shadow, seconds, g_pts = _evaluate_pairs(state, solved, pair_node, pair_src, pair_rays,
-                                                            first_samples)
+    # (the volume clusters' samples of the waves are kept for ``sampled_triangles``)
+    log = SampleLog() if OWN_RADIOSITY and state.evaluator is None else None
+    g_ff, g_var, g_shadow, seconds, g_pts, pair_row = _logged_pairs(state, solved, log, pair_node, pair_src, pair_rays)
     evaluated += len(pair_node)
     seconds_in_waves += seconds
     seconds_in_waves += _resample_noisy(state, solved, pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts,
-                                        b_src, h_node)
-    # each pair's row in those waves, or -1 where it was evaluated again since
-    first_row = np.where(pair_rays == first_rays_of, np.arange(len(pair_node)), -1)
-    del first_rays_of
+                                        b_src, h_node, log, pair_row)
     # a face-cluster source is its bounding rectangle scaled by its fill; a rectangle that
     # only bounds its cluster overhangs it, into its neighbours' area, and from closer than
     # its size that overhang may be the nearest part: such pairs gather from the source's
     # children instead, down to rectangles that fit or to triangles
     # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
-    pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row])
-    del g_var, g_shadow, g_pts, first_row     # (the unfiltered arrays, before the rounds make copies)
+    pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row])
+    del g_var, g_shadow, g_pts, pair_row     # (the unfiltered arrays, before the rounds make copies)
     kept = []
     for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
         pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
@@ -1716,12 +1753,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         kids = nodes.children[pair_src[split]]
         own, slot = np.nonzero(kids >= 0)
         k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
-        k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
+        k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
         evaluated += len(k_node)
         seconds_in_waves += k_seconds
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, np.full(len(k_node), -1)])
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row = _columns(kept)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = _columns(kept)
     # leaves that a shadow crosses, where their points' quadrature of it errs by more than
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
@@ -1733,7 +1770,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     stay = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     # (as with the source splits, a pair kept once stays kept: each round looks only at the
     # pairs the last one made, on the leaves it made)
-    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row]
+    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row]
     kept = []
     for _ in range(MAX_SHADOW_SPLITS):
         pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow = pairs_now[:6]
@@ -1758,13 +1795,14 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # it starts at a quarter of its parent's rays, and gets more where they disagree)
         k_node, k_src = kids[own, slot].astype(np.int64), pair_src[over][own]
         k_rays = np.maximum(pair_rays[over][own] // GATHER_RAYS, 1)
-        k_ff, k_var, k_shadow, k_seconds, k_pts = _evaluate_pairs(state, solved, k_node, k_src, k_rays)
-        k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node)
+        k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
+        k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node,
+                                     log, k_row)
         seconds_in_waves += k_seconds
         evaluated += len(k_node)
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, np.full(len(k_node), -1)])
+        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
     kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, first_row = _columns(kept)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = _columns(kept)
     n = len(nodes)
     final_leaves = nodes.leaves
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
@@ -1778,13 +1816,18 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # a volume cluster's pairs bring each sampled triangle's radiosity (from the same rays)
         by_triangle = (nodes.kind[pair_src] == VOLUME) & (g_ff > 0)
         by_mean[by_triangle] = False
-        kept_samples = np.flatnonzero(by_triangle & (first_row >= 0))
-        again = np.flatnonzero(by_triangle & (first_row < 0))
+        logged = np.flatnonzero(by_triangle & (pair_row >= 0))
+        again = np.flatnonzero(by_triangle & (pair_row < 0))
         *sampled, seconds = sampled_triangles(state, pair_node[again], pair_src[again], pair_rays[again])
         seconds_in_waves += seconds
-        if first_samples is not None:
-            sampled = [np.concatenate(c) for c in zip(sampled, kept_triangles(
-                state, first_samples, first_row[kept_samples], pair_node[kept_samples], pair_rays[kept_samples]))]
+        if log is not None:
+            kept = log.split(state, pair_row[logged], pair_node[logged], pair_rays[logged])
+            sampled = [np.concatenate(c) for c in zip(sampled, kept)] if len(again) else kept
+        # (one entry per receiver and triangle: a pair's samples share their few triangles)
+        by_entry = sp.csr_matrix((sampled[2].astype(np.float64), (sampled[0], sampled[1])), shape=(n, n))
+        by_entry.sum_duplicates()
+        by_entry = by_entry.tocoo()
+        sampled = (by_entry.row.astype(np.int64), by_entry.col.astype(np.int64), by_entry.data)
     recv = np.concatenate([pair_node[by_mean], sampled[0]] + [p[0] for p in stay] + [leaves[p[0]] for p in smooth_parts])
     srcs = np.concatenate([pair_src[by_mean], sampled[1]] + [p[1] for p in stay] + [p[1] for p in smooth_parts])
     ff = np.concatenate([g_ff[by_mean], sampled[2]] + [p[2] for p in stay] + [p[2] for p in smooth_parts])

@@ -484,7 +484,7 @@ class DaskEvaluator:
         """Same contract (and bitwise the same results) as ``transfer.volume_samples`` on
         ``NodeBuffers.upload(nodes)``."""
         if len(recv) == 0:
-            return (np.zeros(0, np.int64),) * 3 + (np.zeros(0),), 0
+            return (np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32)), 0
         results, starts = self._node_waves(_volume_samples_task, nodes, recv, src, rays_per_point, seed, offset)
         found = [r[0] for r in results]
         return ((np.concatenate([f[0] + a for f, a in zip(found, starts)]),

@@ -154,8 +154,8 @@ def volume_samples(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray
                    seed: int, offset: float, periodic=None):
     """The arriving samples of volume-cluster sources in the wave ``evaluate`` makes with the
     same arguments (the same rays: each lane's draw is a hash of its link, point and ray):
-    (link (S,) int64 index into recv, receiver point (S,) int64, triangle node sampled (S,)
-    int64, sampled transfer (S,) float64), and the shadow rays traced. Link m's transfer is
+    (link (S,) int64 index into recv, receiver point (S,), triangle node sampled (S,),
+    sampled transfer (S,): ``_arriving``'s types), and the shadow rays traced. Link m's transfer is
     sum_i w_i gv_i, gv_i the mean of point i's R samples: its samples over R split it by the
     triangle each came from (``source_point``)."""
     k, r_count = RECEIVER_POINTS, int(rays_per_point)
@@ -174,20 +174,21 @@ def volume_samples(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray
 
 def _arriving(value, tri, k: int, r_count: int, first: int):
     """The lanes whose volume-cluster sample ``value`` (mi.Float, evaluated, with the triangle
-    node ``tri`` it is on) arrived, as numpy: (link (S,), counted from ``first``; point (S,);
-    triangle node (S,); sampled transfer (S,))."""
+    node ``tri`` it is on) arrived, as numpy: (link (S,) int64, counted from ``first``; point
+    (S,) uint8; triangle node (S,) int32; sampled transfer (S,) float32)."""
     lane = dr.compress(value > 0)
     tri, value = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.Float, value, lane)
     dr.eval(lane, tri, value)
     lane = np.asarray(lane.numpy(), np.int64)
-    return (lane // (k * r_count) + first, (lane // r_count) % k, np.asarray(tri.numpy(), np.int64),
-            np.asarray(value.numpy(), np.float64))
+    # (compact: a large canopy's gather keeps millions of them)
+    return (lane // (k * r_count) + first, ((lane // r_count) % k).astype(np.uint8), np.asarray(tri.numpy(), np.int32),
+            np.asarray(value.numpy(), np.float32))
 
 
 def _joined(found: list) -> tuple:
     """``_arriving``'s parts concatenated, column by column (empty arrays for none)."""
     if not found:
-        return (np.zeros(0, np.int64),) * 3 + (np.zeros(0),)
+        return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32)
     return tuple(np.concatenate(c) for c in zip(*found))
 
 

@@ -1205,7 +1205,7 @@ def test_a_gathered_pair_that_found_nothing_is_sampled_again_only_where_what_it_
     from types import SimpleNamespace
     calls = []
 
-    def evaluate(state, solved, patch, src, rays):
+    def evaluate(state, solved, patch, src, rays, found=None):
         calls.append(patch.copy())
         m = len(patch)
         return np.zeros(m), var[patch], np.zeros(m), 0.0, np.zeros((m, core.RECEIVER_POINTS), np.float32)
