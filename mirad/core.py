@@ -1821,8 +1821,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         *sampled, seconds = sampled_triangles(state, pair_node[again], pair_src[again], pair_rays[again])
         seconds_in_waves += seconds
         if log is not None:
-            kept = log.split(state, pair_row[logged], pair_node[logged], pair_rays[logged])
-            sampled = [np.concatenate(c) for c in zip(sampled, kept)] if len(again) else kept
+            from_log = log.split(state, pair_row[logged], pair_node[logged], pair_rays[logged])
+            sampled = [np.concatenate(c) for c in zip(sampled, from_log)] if len(again) else from_log
         # (one entry per receiver and triangle: a pair's samples share their few triangles)
         by_entry = sp.csr_matrix((sampled[2].astype(np.float64), (sampled[0], sampled[1])), shape=(n, n))
         by_entry.sum_duplicates()

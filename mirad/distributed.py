@@ -493,9 +493,9 @@ class DaskEvaluator:
     def _node_waves(self, task, nodes, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
                     offset: float) -> tuple[list, np.ndarray]:
         """``task`` on batches of links recv <- src (M,) over the workers: their results in
-        order and the index of each batch's first link. The node
-        arrays go to them once per change of ``len(nodes)`` (just the rows added since the last
-        send, when the others are unchanged)."""
+        order and the index of each batch's first link. The node arrays go to them once per
+        change of ``len(nodes)`` (just the rows added since the last send, when the others are
+        unchanged)."""
         m = len(recv)
         t0 = time.perf_counter()
         if self._nodes[0] != len(nodes):

@@ -229,8 +229,6 @@ class Lanes(NamedTuple):
     traced: object       # mi.Bool: a ray was traced
     v: object            # mi.Float: 1 where it arrived
     tri: object          # mi.UInt32: the triangle node the target is on
-    y: object            # mi.Vector3f: the target point on the source, and its normal
-    ny: object
 
 
 def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None) -> Lanes:
@@ -294,7 +292,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return Lanes(g_exact, kernel, g_volume, traced, v, tri, y, ny)
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -308,7 +306,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
     ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
     ray.maxt = shadow_ray_length(dist, offset)
     v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
-    return Lanes(g_exact, kernel, g_volume, traced, v, tri, y, ny)
+    return Lanes(g_exact, kernel, g_volume, traced, v, tri)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
