@@ -41,7 +41,7 @@ from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceS
 from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
-from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked, volume_samples,
+from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
 from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
 from .cluster import sphere_form_factor_bound
@@ -252,11 +252,11 @@ def _buffers(state: State) -> NodeBuffers:
 def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
                samples: bool = False):
     """``transfer.evaluate`` of links recv <- src (M,) on the state's nodes: in this process,
-    or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers, there
-    without ``samples``; the direct light and ``buried_fraction`` always run here)."""
+    or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers; the
+    direct light and ``buried_fraction`` always run here)."""
     if state.evaluator is not None:
         return state.evaluator.evaluate_transfers(state.nodes, recv, src, rays_per_point=rays_per_point, seed=seed,
-                                                  offset=state.offset)
+                                                  offset=state.offset, samples=samples)
     return evaluate(state.scene.mi_scene, _buffers(state), recv, src, rays_per_point=rays_per_point, seed=seed,
                     offset=state.offset, periodic=state.periodic, samples=samples)
 
@@ -779,8 +779,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
     per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
     point's own visibility (M, K), seconds in the waves, and the mean squared sampled transfer
     of volume-cluster sources (M, K), transfer.PointTransfers.gv_square). ``found``: a list to
-    which the volume clusters' arriving samples are added (``transfer.volume_samples``, their
-    links counted in recv), or None."""
+    which the volume clusters' arriving samples are added (``transfer.PointTransfers.samples``,
+    their links counted in recv), or None."""
     out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(4)]
     seconds = 0.0
     for count in np.unique(rays):
@@ -866,7 +866,8 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
 def _logged_pairs(state: State, solved: Solved, log: "SampleLog | None", patch: np.ndarray, src: np.ndarray,
                   rays: np.ndarray):
     """``_evaluate_pairs`` of pairs patch <- src (M,) with their volume samples recorded in
-    ``log`` (or None): its five results and the pairs' rows in the log (M,) (-1 without one)."""
+    ``log`` (or None): its five results and the pairs' rows in the log (M,) (-1 without one,
+    not read)."""
     if log is None:
         return _evaluate_pairs(state, solved, patch, src, rays) + (np.full(len(patch), -1, np.int64),)
     found = []
@@ -905,49 +906,21 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
 
 
 #: A volume cluster's gathered transfers bring each sampled triangle's own radiosity, not the
-#: cluster's mean (``sampled_triangles``).
+#: cluster's mean (``SampleLog``).
 OWN_RADIOSITY = True
-
-
-def sampled_triangles(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray):
-    """Transfers recv <- src (M,) from volume clusters, as ``_evaluate_pairs`` evaluated them
-    with ``rays`` (M,) shadow rays per point (the same rays, traced again), split by the
-    triangle each arriving sample came from: (receiver (S,), triangle node (S,), transfer (S,),
-    seconds in the waves). One pair's entries sum to its transfer.
-
-    A cluster's mean radiosity stands for what a receiver sees of it only where the transfer
-    is even over the cluster: a receiver near a lamp inside a cluster of furniture sees the
-    lamp far more than the cluster's other parts, and the mean brought a room's shelves twice
-    their light (tolerance 0.9: +115 %, with each sample's own triangle +2 %)."""
-    nodes = state.nodes
-    parts, seconds = [], 0.0
-    for count in np.unique(rays):
-        group = np.flatnonzero(rays == count)
-        for part in _chunks(len(group)):
-            idx = group[part]
-            t1 = time.perf_counter()
-            kw = dict(rays_per_point=int(count), seed=state.settings.seed + 0x7E57, offset=state.offset)
-            if state.evaluator is not None:
-                (link, point, tri, value), traced = state.evaluator.volume_samples(state.nodes, recv[idx], src[idx],
-                                                                                   **kw)
-            else:
-                (link, point, tri, value), traced = volume_samples(state.scene.mi_scene, _buffers(state), recv[idx],
-                                                                   src[idx], periodic=state.periodic, **kw)
-            seconds += time.perf_counter() - t1
-            state.rays += traced
-            node = recv[idx][link]
-            parts.append((node, tri, nodes.recv_w[node, point] * value / np.float32(count)))
-    if not parts:
-        return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32), seconds
-    node, tri, ff = (np.concatenate(c) for c in zip(*parts))
-    return node, tri, ff, seconds
 
 
 class SampleLog:
     """The volume clusters' arriving samples of the final gather's waves (``_point_values``'s
-    ``found``), so that ``sampled_triangles`` need not trace their pairs' rays again. Every
-    pair the gather evaluates gets a row (``rows``), or -1 (not recorded: evaluated on Dask
-    workers); a row's samples are those of its last wave (more rays replace fewer)."""
+    ``found``), for each such pair's transfer split by the triangle each sample came from
+    (``split``): one pair's entries sum to its transfer.
+
+    A cluster's mean radiosity stands for what a receiver sees of it only where the transfer
+    is even over the cluster: a receiver near a lamp inside a cluster of furniture sees the
+    lamp far more than the cluster's other parts, and the mean brought a room's shelves twice
+    their light (tolerance 0.9: +115 %, with each sample's own triangle +2 %). Every pair the
+    gather evaluates gets a row (``rows``); a row's samples are those of its last wave (more
+    rays replace fewer)."""
 
     def __init__(self) -> None:
         self.waves: list = []                    # (rows (m,), found) per recorded wave
@@ -965,8 +938,8 @@ class SampleLog:
         self.waves.append((rows, found))
 
     def split(self, state: State, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray):
-        """``sampled_triangles`` of pairs recv (M,) (``rays`` (M,) per point) from the samples
-        of rows ``rows`` (M,): (receiver (S,), triangle node (S,), transfer (S,))."""
+        """Transfers of pairs recv (M,) (``rays`` (M,) per point) from the samples of rows
+        ``rows`` (M,), split by sampled triangle: (receiver (S,), triangle node (S,), transfer (S,))."""
         pair_of = np.full(len(self.last), -1, np.int64)     # each row's pair, or -1
         pair_of[rows] = np.arange(len(rows))
         # (each pair's point weights over its rays per point, looked up per sample)
@@ -1714,8 +1687,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     del pair_link
-    # (the volume clusters' samples of the waves are kept for ``sampled_triangles``)
-    log = SampleLog() if OWN_RADIOSITY and state.evaluator is None else None
+    # (the volume clusters' samples of the waves are kept for their transfers' split by triangle)
+    log = SampleLog() if OWN_RADIOSITY else None
     g_ff, g_var, g_shadow, seconds, g_pts, pair_row = _logged_pairs(state, solved, log, pair_node, pair_src, pair_rays)
     evaluated += len(pair_node)
     seconds_in_waves += seconds
@@ -1812,17 +1785,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                                                         [p[3] for p in smooth_parts]), minlength=n)
     by_mean = np.ones(len(pair_node), bool)
     sampled = (np.zeros(0, np.int64),) * 2 + (np.zeros(0),)
-    if OWN_RADIOSITY:
+    if log is not None:
         # a volume cluster's pairs bring each sampled triangle's radiosity (from the same rays)
-        by_triangle = (nodes.kind[pair_src] == VOLUME) & (g_ff > 0)
+        by_triangle = np.flatnonzero((nodes.kind[pair_src] == VOLUME) & (g_ff > 0))
         by_mean[by_triangle] = False
-        logged = np.flatnonzero(by_triangle & (pair_row >= 0))
-        again = np.flatnonzero(by_triangle & (pair_row < 0))
-        *sampled, seconds = sampled_triangles(state, pair_node[again], pair_src[again], pair_rays[again])
-        seconds_in_waves += seconds
-        if log is not None:
-            from_log = log.split(state, pair_row[logged], pair_node[logged], pair_rays[logged])
-            sampled = [np.concatenate(c) for c in zip(sampled, from_log)] if len(again) else from_log
+        sampled = log.split(state, pair_row[by_triangle], pair_node[by_triangle], pair_rays[by_triangle])
         # (one entry per receiver and triangle: a pair's samples share their few triangles)
         by_entry = sp.csr_matrix((sampled[2].astype(np.float64), (sampled[0], sampled[1])), shape=(n, n))
         by_entry.sum_duplicates()

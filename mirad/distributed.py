@@ -256,22 +256,16 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
     return tuple(getattr(wave, f) for f in LinkWave.FIELDS), wave.rays
 
 
-def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
+def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float,
+                    samples: bool):
     """One batch of hierarchical-core links on a worker: ``transfer.evaluate``'s per-point
-    arrays g, gv, gv_point, gv_square (M, K) float32 and the ray count."""
+    arrays g, gv, gv_point, gv_square (M, K) float32, the ray count and, with ``samples``, the
+    volume clusters' arriving samples (links indexed within the batch)."""
     from .transfer import evaluate
 
     pt = evaluate(_worker_scene(key).mi_scene, _node_buffers(nodes_payload), recv, src, rays_per_point=rays_per_point,
-                  seed=seed, offset=offset)
-    return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays
-
-
-def _volume_samples_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float):
-    """One batch of ``transfer.volume_samples`` on a worker (links indexed within the batch)."""
-    from .transfer import volume_samples
-
-    return volume_samples(_worker_scene(key).mi_scene, _node_buffers(nodes_payload), recv, src,
-                          rays_per_point=rays_per_point, seed=seed, offset=offset)
+                  seed=seed, offset=offset, samples=samples)
+    return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays, pt.samples
 
 
 def _node_buffers(nodes_payload):
@@ -462,7 +456,7 @@ class DaskEvaluator:
         return LinkWave(*fields, int(sum(r[1] for r in results)))
 
     def evaluate_transfers(self, nodes, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int, seed: int,
-                           offset: float):
+                           offset: float, samples: bool = False):
         """Same contract (and bitwise the same results) as ``transfer.evaluate`` on
         ``NodeBuffers.upload(nodes)``: the hierarchical core's links recv <- src (M,).
 
@@ -470,33 +464,12 @@ class DaskEvaluator:
         count changes, the node arrays go to the workers once per change of ``len(nodes)``
         (just the rows added since the last send, when the others are unchanged)."""
         from .nodes import RECEIVER_POINTS
-        from .transfer import PointTransfers
+        from .transfer import PointTransfers, join_samples
 
         m = len(recv)
         if m == 0:
-            return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(4)), 0)
-        results, _ = self._node_waves(_transfers_task, nodes, recv, src, rays_per_point, seed, offset)
-        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(4)),
-                              int(sum(r[4] for r in results)))
-
-    def volume_samples(self, nodes, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int, seed: int,
-                       offset: float):
-        """Same contract (and bitwise the same results) as ``transfer.volume_samples`` on
-        ``NodeBuffers.upload(nodes)``."""
-        if len(recv) == 0:
-            return (np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32)), 0
-        results, starts = self._node_waves(_volume_samples_task, nodes, recv, src, rays_per_point, seed, offset)
-        found = [r[0] for r in results]
-        return ((np.concatenate([f[0] + a for f, a in zip(found, starts)]),
-                 *(np.concatenate([f[i] for f in found]) for i in (1, 2, 3))), int(sum(r[1] for r in results)))
-
-    def _node_waves(self, task, nodes, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
-                    offset: float) -> tuple[list, np.ndarray]:
-        """``task`` on batches of links recv <- src (M,) over the workers: their results in
-        order and the index of each batch's first link. The node arrays go to them once per
-        change of ``len(nodes)`` (just the rows added since the last send, when the others are
-        unchanged)."""
-        m = len(recv)
+            return PointTransfers(*(np.zeros((0, RECEIVER_POINTS), np.float32) for _ in range(4)), 0,
+                                  join_samples([]) if samples else None)
         t0 = time.perf_counter()
         if self._nodes[0] != len(nodes):
             self._nodes = (len(nodes), self._scatter_rows("nodes", node_arrays(nodes)))
@@ -505,13 +478,17 @@ class DaskEvaluator:
         self.timing["scatter"] += t1 - t0
         batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
         bounds = np.linspace(0, m, batches + 1).astype(np.int64)
-        futures = [self.client.submit(task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
-                                      int(seed), float(offset), pure=False)
+        futures = [self.client.submit(_transfers_task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
+                                      int(seed), float(offset), bool(samples), pure=False)
                    for a, b in zip(bounds[:-1], bounds[1:])]
         results = self.client.gather(futures)
         self.timing["run"] += time.perf_counter() - t1
         self.batches += len(futures)
-        return results, bounds[:-1]
+        found = None
+        if samples:     # (each batch's links counted from its first)
+            found = join_samples([(r[5][0] + a,) + r[5][1:] for r, a in zip(results, bounds[:-1])])
+        return PointTransfers(*(np.concatenate([r[i] for r in results]) for i in range(4)),
+                              int(sum(r[4] for r in results)), found)
 
     def reference(self, scene, *, samples_per_triangle: int = 1024, seed: int = 0, max_depth: int = -1,
                   method: str = "outgoing", chunk: int = 4096):

@@ -84,7 +84,9 @@ class PointTransfers:
     #                        sampled transfer (its sampling variance); 0 for planar sources
     rays: int            # shadow rays traced
     #: with ``evaluate(..., samples=True)``: the arriving samples of volume-cluster sources
-    #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,); ``volume_samples``)
+    #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,); ``_arriving``): a
+    #: link's transfer is sum_i w_i gv_i with gv_i the mean of point i's R samples, so its
+    #: samples over R split it by the triangle each came from (``source_point``)
     samples: tuple | None = None
 
 
@@ -128,7 +130,7 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     shadow rays each; ``offset`` lifts ray ends off surfaces (metres). ``periodic``: a
     ``periodic.PeriodicBox`` (the link then sums the source's nearest lattice images, with
     wrapped shadow rays; ``periodic.image_visibility``), or None. With ``samples``, also the
-    volume clusters' arriving samples (``PointTransfers.samples``, as ``volume_samples``)."""
+    volume clusters' arriving samples (``PointTransfers.samples``)."""
     m = len(recv)
     k = RECEIVER_POINTS
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
@@ -147,29 +149,7 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
             rays += ra
             if samples:
                 found.append(_arriving(*sampled, k, rays_per_point, a))
-    return PointTransfers(g, gv, gp, g2, rays, _joined(found) if samples else None)
-
-
-def volume_samples(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int,
-                   seed: int, offset: float, periodic=None):
-    """The arriving samples of volume-cluster sources in the wave ``evaluate`` makes with the
-    same arguments (the same rays: each lane's draw is a hash of its link, point and ray):
-    (link (S,) int64 index into recv, receiver point (S,), triangle node sampled (S,),
-    sampled transfer (S,): ``_arriving``'s types), and the shadow rays traced. Link m's transfer is
-    sum_i w_i gv_i, gv_i the mean of point i's R samples: its samples over R split it by the
-    triangle each came from (``source_point``)."""
-    k, r_count = RECEIVER_POINTS, int(rays_per_point)
-    per_launch = max(1, MAX_LANES // (k * r_count))
-    found, rays = [], 0
-    with exact_arithmetic():
-        for a in range(0, len(recv), per_launch):
-            b = min(len(recv), a + per_launch)
-            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], r_count, seed, offset, periodic)
-            value, n_traced = lanes.g_volume * lanes.v, dr.sum(dr.select(lanes.traced, 1.0, 0.0))
-            dr.eval(value, lanes.tri, n_traced)
-            found.append(_arriving(value, lanes.tri, k, r_count, a))
-            rays += int(round(float(n_traced[0])))
-    return _joined(found), rays
+    return PointTransfers(g, gv, gp, g2, rays, join_samples(found) if samples else None)
 
 
 def _arriving(value, tri, k: int, r_count: int, first: int):
@@ -185,8 +165,9 @@ def _arriving(value, tri, k: int, r_count: int, first: int):
             np.asarray(value.numpy(), np.float32))
 
 
-def _joined(found: list) -> tuple:
-    """``_arriving``'s parts concatenated, column by column (empty arrays for none)."""
+def join_samples(found: list) -> tuple:
+    """Parts of the arriving samples (``_arriving``'s, ``PointTransfers.samples``) concatenated,
+    column by column (empty arrays for none)."""
     if not found:
         return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32)
     return tuple(np.concatenate(c) for c in zip(*found))
