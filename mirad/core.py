@@ -840,8 +840,9 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
         var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
                                                  ff_unocc[vol], rays[vol])) ** 2
     spatial = np.zeros(len(patch))
-    if partial.any():
-        k = np.flatnonzero(partial)
+    # (with one ray a point the shadow's quadrature and the rays' noise are one: zero there)
+    if (partial & (rays > 1)).any():
+        k = np.flatnonzero(partial & (rays > 1))
         spatial[k] = b[k] ** 2 * shadow_variance(nodes, patch[k], w[k], g[k].astype(np.float64),
                                                  gv_point[k].astype(np.float64), rays[k])
     # or, from a source smaller than the leaf and nearer than its size (``refine.unresolved``),
@@ -1547,6 +1548,14 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
     return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
 
 
+def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M,) bool: triangles recv wholly behind (or in) the plane of their planar source src,
+    every corner at most on it: the exact form factor is 0 at each of their points, which
+    must lie in front (``transfer._point_form_factor``). Volume-cluster sources: False."""
+    height = np.einsum("mc,mkc->mk", nodes.normal[src], nodes.poly[recv, :3] - nodes.poly[src, 0][:, None])
+    return (nodes.kind[src] != VOLUME) & (height.max(axis=1) <= 0.0)
+
+
 def first_rays(state: State, links: Links, node: np.ndarray, src: np.ndarray, link: np.ndarray, rays: np.ndarray,
                b_src: np.ndarray, h_node: np.ndarray, tolerance: float) -> np.ndarray:
     """(M,) shadow rays per point that gathered pairs node <- src (M,) start with: one where the
@@ -1706,6 +1715,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
     del pair_link
+    # (a leaf wholly behind its planar source's plane gets nothing from it: no wave; in the
+    # furnished room 13 % of these pairs)
+    if state.periodic is None:
+        lit = ~behind_source(nodes, pair_node, pair_src)
+        pair_node, pair_src, pair_rays = pair_node[lit], pair_src[lit], pair_rays[lit]
     # (the volume clusters' samples of the waves are kept for their transfers' split by triangle)
     log = SampleLog() if OWN_RADIOSITY else None
     g_ff, g_var, g_shadow, seconds, g_pts, pair_row = _logged_pairs(state, solved, log, pair_node, pair_src, pair_rays)
