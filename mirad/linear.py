@@ -11,7 +11,7 @@ K is never formed (it can fill in); each product is three sparse mat-vecs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,10 +34,27 @@ class LeafSystem:
     emission: np.ndarray
     tau: np.ndarray | None = None
     opposite: sp.csr_matrix | None = None
+    _trimmed: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def gather(self, b: np.ndarray) -> np.ndarray:
         """Irradiance (L, C) gathered over all links for leaf radiosity b (L, C)."""
-        return self.push @ (self.links @ (self.pull @ b))
+        push, links, pull = self.trimmed()
+        return push @ (links @ (pull @ b))
+
+    def trimmed(self) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
+        """(push, links, pull) over the nodes that receive a link (push's columns, the links'
+        rows) and the nodes that send one (the links' columns, pull's rows) only: the same
+        products (the nodes left out only add zeros) at a fraction of the work. A pass's
+        system links a few hundred of tens of thousands of nodes, yet push and pull hold every
+        node's leaves: its products were 6x the trimmed ones on the fine Cornell box."""
+        key = (id(self.push), id(self.links), id(self.pull))
+        if self._trimmed is None or self._trimmed[0] != key:
+            links = self.links.tocsr()
+            receivers = np.flatnonzero(np.diff(links.indptr) > 0)
+            senders = np.unique(links.indices)
+            self._trimmed = (key, (self.push[:, receivers].tocsr(), links[receivers][:, senders].tocsr(),
+                                   self.pull[senders].tocsr()))
+        return self._trimmed[1]
 
     def scatter(self, h: np.ndarray, channel: int | None = None) -> np.ndarray:
         """Radiosity that irradiance h (L, C), or (L,) of one channel, sends back out:
