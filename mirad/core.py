@@ -1643,7 +1643,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # the last round's fits that failed, 0 at the first round)
         direct = descend & whole & (n_below[recv] * GATHER_RAYS * (1.0 - failed) <= SOURCE_POINTS)
         # (a one-ray fit costs a ray a point, as each leaf below: trying it costs 1 + p n_below
-        # leaves' rays against n_below, so it is worth its rays while n_below (1 - p) > 1)
+        # leaves' rays against n_below, so it is worth its rays while n_below (1 - p) > 1, p
+        # the last round's share of one-ray fits that failed)
         direct |= descend & ~whole & (n_below[recv] * (1.0 - failed_one) <= 1.0)
         if direct.any():
             leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
@@ -1701,8 +1702,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         rest = np.flatnonzero(~smooth)
         tried = np.flatnonzero(whole)
         failed = float((~smooth[tried]).mean()) if len(tried) else failed
+        # (as a rate from few tries, (failures + 1) / (tries + 2): one fit that failed is no
+        # sign that all the next round's would; from none, the last round's stands)
         tried_one = np.setdiff1d(fit, tried, assume_unique=True)
-        failed_one = float((~smooth[tried_one]).mean()) if len(tried_one) else failed_one
+        if len(tried_one):
+            failed_one = (float(np.count_nonzero(~smooth[tried_one])) + 1.0) / (len(tried_one) + 2.0)
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays, origin = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own], origin[rest][own]
@@ -1909,23 +1913,28 @@ def source_state(state: State, solved: Solved) -> SourceState:
     b_node = solved.b_node
     b_leaf = solved.b_leaf
     system = solved.system
-    pull = system.pull                      # CSR (N, L): a row per node, its leaves' shares
     n = len(state.nodes)
-    rows = np.repeat(np.arange(n), np.diff(pull.indptr))
-    deviation = channel_max(np.abs(b_leaf[pull.indices] - b_node[rows]))
-    measured = np.bincount(rows, weights=pull.data * deviation, minlength=n)
     links = state.links
+    # (the deviation and brightest leaf are read at the links' sources only: over the pull's
+    # rows of those nodes, not every node's leaves each pass; zero elsewhere)
+    senders = np.unique(links.src).astype(np.int64)
+    pull = system.pull[senders]             # CSR (S, L): a row per sender, its leaves' shares
+    rows = np.repeat(np.arange(len(senders)), np.diff(pull.indptr))
+    deviation = channel_max(np.abs(b_leaf[pull.indices] - b_node[senders[rows]]))
+    measured = np.zeros(n)
+    measured[senders] = np.bincount(rows, weights=pull.data * deviation, minlength=len(senders))
     if SOURCE_DEVIATION == "measured":
         dev = measured
     else:
         variation = np.bincount(links.recv, weights=links.spread * b_node.max(axis=1)[links.src], minlength=n)
         leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
-        dev = np.maximum(measured, pull @ (leaf_rho * (system.push @ variation)))
-    # the brightest leaf below each node (a segmented maximum over the pull's rows)
+        dev = measured.copy()
+        dev[senders] = np.maximum(measured[senders], pull @ (leaf_rho * (system.push @ variation)))
+    # the brightest leaf below each sender (a segmented maximum over the pull's rows)
     below = np.zeros(n)
     filled = np.flatnonzero(np.diff(pull.indptr) > 0)
     if len(filled):
-        below[filled] = np.maximum.reduceat(channel_max(b_leaf)[pull.indices], pull.indptr[filled])
+        below[senders[filled]] = np.maximum.reduceat(channel_max(b_leaf)[pull.indices], pull.indptr[filled])
     leaf_area = state.nodes.area[solved.leaves]
     rho_mean = float((leaf_area * channel_max(solved.system.rho)).sum() / max(leaf_area.sum(), 1e-300))
     # an error in what a face cluster sends reaches the output after interreflection (and,

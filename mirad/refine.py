@@ -294,6 +294,8 @@ class SourceState:
     b_max : brightest channel of the node's mean radiosity, W/m^2
     b_max_below : brightest leaf below (volume-cluster bounds), W/m^2
     dev : area-weighted mean |B_leaf - B_node| over the node's leaves (max channel), W/m^2
+
+    b_max_below and dev are read at links' sources only, and set there only (0 elsewhere).
     """
 
     b_max: np.ndarray
