@@ -1631,7 +1631,6 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     evaluated = 0
     n_below = np.diff(below.indptr)
     failed = 0.0                # share of the last round's fits that did not fit
-    failed_one = 0.0            # (of those from one ray a point)
     while len(recv):
         descend = inner[recv]
         # a fit of a partly shadowed link costs a ray to each of the source's points from
@@ -1642,10 +1641,6 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # the cheaper way once n_below GATHER_RAYS (1 - p) <= SOURCE_POINTS, with p the share of
         # the last round's fits that failed, 0 at the first round)
         direct = descend & whole & (n_below[recv] * GATHER_RAYS * (1.0 - failed) <= SOURCE_POINTS)
-        # (a one-ray fit costs a ray a point, as each leaf below: trying it costs 1 + p n_below
-        # leaves' rays against n_below, so it is worth its rays while n_below (1 - p) > 1, p
-        # the last round's share of one-ray fits that failed)
-        direct |= descend & ~whole & (n_below[recv] * (1.0 - failed_one) <= 1.0)
         if direct.any():
             leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
             pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner], origin[direct][owner]))
@@ -1702,11 +1697,6 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         rest = np.flatnonzero(~smooth)
         tried = np.flatnonzero(whole)
         failed = float((~smooth[tried]).mean()) if len(tried) else failed
-        # (as a rate from few tries, (failures + 1) / (tries + 2): one fit that failed is no
-        # sign that all the next round's would; from none, the last round's stands)
-        tried_one = np.setdiff1d(fit, tried, assume_unique=True)
-        if len(tried_one):
-            failed_one = (float(np.count_nonzero(~smooth[tried_one])) + 1.0) / (len(tried_one) + 2.0)
         kids = nodes.children[recv[rest]]
         own, slot = np.nonzero(kids >= 0)
         recv, src, rays, origin = kids[own, slot].astype(np.int64), src[rest][own], rays[rest][own], origin[rest][own]
