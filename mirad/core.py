@@ -334,9 +334,11 @@ def _keep(state: State, links: Links) -> np.ndarray:
 
 
 def refine(state: State, source: SourceState, eps: float, max_links: int,
-           max_waves: int | None = None) -> tuple[bool, bool]:
+           max_waves: int | None = None, errors: tuple | None = None) -> tuple[bool, bool]:
     """Stage refine: waves until every link is under eps (W), or ``max_waves`` waves;
-    returns (changed, capped)."""
+    returns (changed, capped). ``errors``: (links, receiver terms, source terms) as
+    ``estimate`` found them with the same ``source``: while ``state.links`` is still those
+    links, the first wave takes them instead of computing them again; or None."""
     t0 = time.perf_counter()
     nodes = state.nodes
     changed = capped = False
@@ -348,7 +350,10 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         fresh = np.arange(checked, len(links))
         part = links.select(fresh)
         source = source.grow(nodes)
-        rec, src_term = power_errors(nodes, part, source)
+        if errors is not None and checked == 0 and errors[0] is links:
+            rec, src_term = errors[1:]
+        else:
+            rec, src_term = power_errors(nodes, part, source)
         dec = choose(nodes, part, rec, src_term, eps, state.min_area)
         if not dec.any:
             break
@@ -2135,6 +2140,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     try:
         while True:
             src_state = source_state(state, solved)
+            links_estimated = state.links
             est = estimate(state, solved, src_state)
             history.append(est.relative)
             bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
@@ -2152,7 +2158,8 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
                 resampled |= split_direct(state, leaves, eps)
             # one wave per pass: the children's errors are judged after the next solve, from
             # the radiosity they bring (their parents' errors and eps were judged without it)
-            changed, capped = refine(state, src_state, eps, max_links, max_waves=1)
+            changed, capped = refine(state, src_state, eps, max_links, max_waves=1,
+                                     errors=(links_estimated, est.receiver, est.source))
             if len(state.nodes.leaves) != len(leaves):
                 direct_of_new_leaves(state)
             passes += 1
