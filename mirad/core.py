@@ -348,7 +348,7 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         waves += 1
         links = state.links
         fresh = np.arange(checked, len(links))
-        part = links.select(fresh)
+        part = links if checked == 0 else links.select(fresh)
         source = source.grow(nodes)
         if errors is not None and checked == 0 and errors[0] is links:
             rec, src_term = errors[1:]
