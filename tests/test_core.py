@@ -1284,3 +1284,88 @@ def test_a_volume_clusters_transfer_is_drawn_by_what_its_parts_send(tmp_path):
                     for k in range(core.RECEIVER_POINTS) for t in others
                     if nodes.normal[t] @ (nodes.recv_pts[r, k] - nodes.poly[t, 0]) > 0)
         assert sampled == pytest.approx(exact, rel=0.1)
+
+
+def test_receivers_behind_their_source_get_exactly_nothing_from_it():
+    """``core.behind_source`` (the final gather leaves such pairs out, unevaluated) claims only
+    pairs whose exact unoccluded transfer is zero at every receiver point: evaluated anyway,
+    each of the room's triangles it claims against each planar source reads 0."""
+    from mirad.transfer import NodeBuffers, evaluate
+
+    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, quiet=True, core="hierarchical"))
+    nodes = state.nodes
+    rng = np.random.default_rng(3)
+    recv = rng.choice(np.flatnonzero(nodes.kind == core.TRIANGLE), 4000)
+    src = rng.choice(np.flatnonzero(nodes.kind != core.VOLUME), 4000)
+    behind = core.behind_source(nodes, recv, src)
+    pt = evaluate(scene.mi_scene, NodeBuffers.upload(nodes), recv, src, rays_per_point=1, seed=7, offset=state.offset)
+    zero = (pt.g == 0).all(axis=1)
+    assert behind.sum() > 500
+    assert zero[behind].all()
+    # and more than half of the triangles whose corners are all behind or in the plane (the
+    # sphere bounds the triangle: it leaves out those in the source's own plane; 60 % here)
+    height = np.einsum("mc,mkc->mk", nodes.normal[src], nodes.poly[recv, :3] - nodes.poly[src, 0][:, None])
+    corners_behind = height.max(axis=1) <= 0.0
+    assert zero[corners_behind].all() and behind.sum() >= 0.5 * corners_behind.sum()
+    # volume clusters are never claimed (their samples are drawn on their triangles)
+    vol = np.flatnonzero(nodes.kind == core.VOLUME)
+    assert not core.behind_source(nodes, recv[:len(vol)], vol[:len(recv)]).any()
+
+
+def test_a_leaf_system_gathers_through_its_trimmed_matrices_bitwise():
+    """``LeafSystem.gather`` runs over push, links and pull trimmed to the nodes that receive or
+    send a link (``LeafSystem.trimmed``): the same sums as the full products, bitwise, for a
+    pass's system and the final one, and a system whose links change is trimmed again."""
+    import scipy.sparse as sp
+
+    captured = []
+    original = core.solve_system
+
+    def spy(system, x0, **kw):
+        captured.append(system)
+        return original(system, x0, **kw)
+
+    core.solve_system = spy
+    try:
+        mirad.solve(SCENES / "cornell-box" / "scene.xml", tolerance=0.1, **HIER)
+    finally:
+        core.solve_system = original
+    rng = np.random.default_rng(4)
+    for system in (captured[1], captured[-1]):
+        b = rng.random((system.push.shape[0], 3))
+        full = system.push @ (system.links @ (system.pull @ b))
+        np.testing.assert_array_equal(system.gather(b), full)
+        push, links, pull = system.trimmed()
+        assert links.nnz == system.links.nnz and pull.shape[0] < system.pull.shape[0]
+    other = captured[1]
+    other.links = sp.csr_matrix(other.links.shape)
+    assert not other.gather(rng.random((other.push.shape[0], 3))).any()
+
+
+def test_sources_deviation_is_computed_where_the_links_read_it():
+    """``source_state`` measures a node's deviation and brightest leaf below over the pull's rows
+    of the links' sources only: there they equal the whole pull's values."""
+    captured = {}
+    original = core.source_state
+
+    def spy(state, solved):
+        out = original(state, solved)
+        captured.update(state=state, solved=solved, out=out)
+        return out
+
+    core.source_state = spy
+    try:
+        mirad.solve(SCENES / "cornell-box" / "scene.xml", tolerance=0.1, **HIER)
+    finally:
+        core.source_state = original
+    state, solved, out = captured["state"], captured["solved"], captured["out"]
+    pull = solved.system.pull
+    rows = np.repeat(np.arange(pull.shape[0]), np.diff(pull.indptr))
+    deviation = core.channel_max(np.abs(solved.b_leaf[pull.indices] - solved.b_node[rows]))
+    measured = np.bincount(rows, weights=pull.data * deviation, minlength=pull.shape[0])
+    senders = np.unique(state.links.src)
+    np.testing.assert_array_equal(out.dev[senders], measured[senders])
+    below = np.zeros(pull.shape[0])
+    np.maximum.at(below, rows, core.channel_max(solved.b_leaf)[pull.indices])
+    np.testing.assert_array_equal(out.b_max_below[senders], below[senders])
