@@ -75,7 +75,7 @@ SKY_IRRADIANCE = 120.0
 RAD_SUN_ANGLE = 0.533
 
 # ---------------- sweeps -------------------------------------------------------------------------------------
-FULL = dict(leaves=1000, reference=65536, tolerances=(0.4, 0.2, 0.1, 0.05, 0.02),
+FULL = dict(leaves=1000, reference=65536, tolerances=(0.9, 0.6, 0.4, 0.2, 0.1, 0.05, 0.02),
             pt=(64, 256, 1024, 4096, 16384),
             radiance=("p4 a1 ab2 ad128 as32 aa0.2 ar32", "p16 a4 ab3 ad64 as0 aa0", "p16 a4 ab4 ad128 as0 aa0",
                       "p16 a4 ab5 ad256 as0 aa0"),
@@ -617,8 +617,12 @@ def main(argv=None) -> int:
     summary = []
     for side, pts in curves.items():
         sec, err = zip(*pts)
-        at = [time_at(t, sec, err) for t in TARGETS]
-        summary.append(f"| {side} | " + " | ".join("not reached" if math.isnan(x) else f"{x:.2f} s" for x in at)
+        # (where a side's quickest point is already within a target, its time is an upper bound)
+        from mirad.measure import time_at_error
+
+        at = [time_at_error(sec, err, t) for t in TARGETS]
+        summary.append(f"| {side} | " + " | ".join("not reached" if x is None else
+                                                   f"{'at most ' if how == 'at most' else ''}{x:.2f} s" for x, how in at)
                        + f" | {min(err):.2%} |")
     head = (f"Canopy: {lv.count:,} translucent leaves ({len(lv.tris):,} leaf triangles, {scene.triangle_count:,} "
             f"in all), leaf rho {LEAF_RHO}, tau {LEAF_TAU}, soil {SOIL_RHO}; sun {SUN['direct_normal']:g} W/m^2 "
