@@ -843,7 +843,7 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     if vol.any():
         # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
         var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
-                                                 ff_unocc[vol], rays[vol])) ** 2
+                                                 ff_unocc[vol], rays[vol], patch[vol])) ** 2
     spatial = np.zeros(len(patch))
     # (with one ray a point the shadow's quadrature and the rays' noise are one: zero there)
     if (partial & (rays > 1)).any():

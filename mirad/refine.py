@@ -168,7 +168,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     vol = nodes.kind[src] == VOLUME
     if vol.any():
         vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
-                                           rays[vol])
+                                           rays[vol], recv[vol])
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))
@@ -223,7 +223,7 @@ def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.nda
 
 
 def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, unoccluded: np.ndarray,
-                        rays: np.ndarray) -> np.ndarray:
+                        rays: np.ndarray, recv: np.ndarray | None = None) -> np.ndarray:
     """(M,) standard error of links' Monte Carlo transfers from volume clusters.
 
     w (M, K): the receiver points' weights; mean, square (M, K): the mean over each point's
@@ -233,21 +233,28 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     if the points' rays to one target drew the same triangle: conservative too, since each point
     draws its own, ``transfer.source_point``). Where every ray was blocked (or none was) the
     samples' variance is 0 however few they were: a floor of the unoccluded transfer over the
-    ray count stands for the one that might have turned over."""
+    ray count stands for the one that might have turned over. ``recv`` (M,): the receiver
+    nodes w is of, where known (``shared_target_weight`` then goes once per receiver)."""
     f = (w * mean).sum(axis=1)
     pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
     n = RECEIVER_POINTS * rays.astype(np.float64)
-    std = np.sqrt(pooled * shared_target_weight(w, rays))
+    std = np.sqrt(pooled * shared_target_weight(w, rays, recv))
     return np.maximum(std, unoccluded / n)
 
 
-def shared_target_weight(w: np.ndarray, rays: np.ndarray) -> np.ndarray:
+def shared_target_weight(w: np.ndarray, rays: np.ndarray, recv: np.ndarray | None = None) -> np.ndarray:
     """(M,) sum_t c_t^2: what turns one sample's variance into that of a link's transfer,
     with c_t = sum_i w_i n_it / R the weight of the link's target point t (of
     ``transfer.pattern_size(R)``) and n_it how many of point i's R rays aim at it
     (``transfer.ray_target``). The points' rays share the link's targets; were the samples
     independent this would be sum_i w_i^2 / R, which targets drawn by several points' rays
-    exceed (four rays a point: 28 rays on 16 targets)."""
+    exceed (four rays a point: 28 rays on 16 targets). ``recv`` (M,): the receiver nodes whose
+    points' weights w are, or None: where given, each (receiver, rays) is computed once (a
+    canopy's links share a few thousand receivers)."""
+    if recv is not None and len(recv):
+        key = np.asarray(recv, np.int64) * (int(rays.max()) + 1) + rays
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        return shared_target_weight(w[first], rays[first])[inverse]
     out = np.zeros(len(w))
     k = w.shape[1]
     for r in np.unique(rays):
