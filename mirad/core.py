@@ -43,7 +43,7 @@ from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
-from .arrays import RAY_OFFSET, channel_max, row_norm, to_vector3
+from .arrays import RAY_OFFSET, channel_max, row_norm, to_uint, to_vector3
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
@@ -1451,13 +1451,14 @@ def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     if not len(recv):
         return np.zeros((0, 2))
     lane = dr.arange(mi.UInt32, len(recv) * k)
-    pair = lane // k
+    # (each lane's source, and the sources' normals and parts uploaded once, not per pair)
+    source = dr.gather(mi.UInt32, to_uint(s_pos), lane // k)
     x = to_vector3(nodes.recv_pts[recv].reshape(-1, 3))
     nx = to_vector3(nodes.recv_nrm[recv].reshape(-1, 3))
-    ns = dr.gather(mi.Vector3f, to_vector3(normal[s_pos]), pair)
+    ns = dr.gather(mi.Vector3f, to_vector3(normal), source)
     lanes = []
     for j in range(4):
-        corners = [dr.gather(mi.Vector3f, to_vector3(parts[s_pos, j, q]), pair) for q in range(4)]
+        corners = [dr.gather(mi.Vector3f, to_vector3(parts[:, j, q]), source) for q in range(4)]
         front = dr.dot(ns, x - corners[0]) > 0.1 * state.offset
         lanes.append(dr.select(front, point_to_polygon_dr(x, nx, corners), 0.0))
     dr.eval(*lanes)
