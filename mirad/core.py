@@ -1467,14 +1467,16 @@ def _near_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     # (the parts' offsets from their mean, the source's centroid: the transfer already carries
     # the source's mean radiosity, which is its field at the centroid)
     part_centre = parts.mean(axis=2)
-    centre = ((part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None])[s_pos]   # (M, 4, 3)
+    centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None]   # (S, 4, 3)
+    # (each part's offset in its source's plane frame, per source: (S, 4, 2))
+    offset = np.stack([np.einsum("sjc,sc->sj", centre, frame[i]) for i in range(2)], axis=2)
     w = nodes.recv_w[recv].astype(np.float64)
-    unoccluded = (w * f.sum(axis=2)).sum(axis=1)
+    seen = np.einsum("mk,mkj->mj", w, f)                      # (M, 4) each part's transfer
+    unoccluded = seen.sum(axis=1)
     scale = np.divide(ff, unoccluded, out=np.zeros(len(recv)), where=unoccluded > 0)
     # (the parts' centroids hold 3/4 of the source's area covariance, each half-size part a
     # quarter of it: 4/3 restores the moment of a kernel linear across each part)
-    moment = np.einsum("mk,mkj,mjc->mc", w, f, centre) * (4.0 / 3.0 * np.minimum(scale, 1.0))[:, None]
-    return np.stack([np.einsum("mc,mc->m", moment, frame[i][s_pos]) for i in range(2)], axis=1)
+    return np.einsum("mj,mji->mi", seen, offset[s_pos]) * (4.0 / 3.0 * np.minimum(scale, 1.0))[:, None]
 
 
 def _far_moments(nodes: Nodes, recv: np.ndarray, s_pos: np.ndarray, centroid: np.ndarray, cov: np.ndarray,
