@@ -206,7 +206,11 @@ def unseen_in_front(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff_unocc: n
     of the receiver either: a ground under a canopy straddles every tilted leaf's plane, and
     with the bound its links to leaves its points did not see held 50 times the tolerance's
     budget, each the ground's area times the leaf's radiosity."""
-    return _straddles(nodes, recv, src) & (nodes.kind[src] != VOLUME) & (np.asarray(ff_unocc) <= 0)
+    out = (nodes.kind[src] != VOLUME) & (nodes.kind[recv] == FACE) & (np.asarray(ff_unocc) <= 0)
+    # (the plane test only for the links the cheap tests leave: a few in a hundred)
+    some = np.flatnonzero(out)
+    out[some] = _straddles(nodes, recv[some], src[some])
+    return out
 
 
 def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.ndarray, ff_unocc: np.ndarray,
