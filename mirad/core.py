@@ -322,7 +322,10 @@ def _keep(state: State, links: Links) -> np.ndarray:
     (volume-cluster sources are kept until opened). A link whose points all missed its
     source is kept when part of it may see the source (see refine.link_values)."""
     nodes = state.nodes
-    r, s = links.recv, links.src
+    keep = links.ff_unocc > 0
+    # (the others: those whose points saw nothing of the source)
+    dark = np.flatnonzero(~keep)
+    r, s = links.recv[dark], links.src[dark]
     planar_r = nodes.kind[r] != VOLUME
     planar_s = nodes.kind[s] != VOLUME
     tol = 0.1 * state.offset
@@ -330,7 +333,8 @@ def _keep(state: State, links: Links) -> np.ndarray:
     h_rs = np.einsum("mc,mc->m", nodes.normal[r], nodes.center[s] - nodes.poly[r, 0]) + nodes.radius[s]
     h_sr = np.einsum("mc,mc->m", nodes.normal[s], nodes.center[r] - nodes.poly[s, 0]) + nodes.radius[r]
     possible = (~planar_r | (h_rs > tol)) & (~planar_s | (h_sr > tol))
-    return (links.ff_unocc > 0) | (possible & ((links.err_ff > 0) | ~planar_s))
+    keep[dark] = possible & ((links.err_ff[dark] > 0) | ~planar_s)
+    return keep
 
 
 def refine(state: State, source: SourceState, eps: float, max_links: int,
