@@ -391,11 +391,10 @@ def power_errors(nodes: Nodes, links: Links, state: SourceState) -> tuple[np.nda
         receiver[vol] = scale[vol] * state.b_max_below[sv] * bound * share
         source[vol] = 0.0
         # a cluster holding an emitter opens for the receivers near it (within its bounding
-        # sphere's diameter, where the sphere says little about the light), and elsewhere is
-        # bounded like any other cluster: a thousand small lamps then reach a far wall as
-        # a few clusters, not a thousand links
-        near = distance_to_source(nodes, rv, sv) <= 2.0 * nodes.radius[sv]
-        receiver[vol[nodes.emits[sv] & near]] = np.inf
+        # sphere's diameter, where the sphere says little about the light: all of these), and
+        # elsewhere is bounded like any other cluster: a thousand small lamps then reach a
+        # far wall as a few clusters, not a thousand links
+        receiver[vol[nodes.emits[sv]]] = np.inf
     return receiver, source
 
 
