@@ -1406,7 +1406,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
             rho_fit[:, None, :] * spread                                        # (P, 3, C)
         rhs = (to_source @ per.reshape(len(own_s), 3 * channels)).reshape(len(sources), 3, channels)
         coef = np.einsum("sij,sjc->sic", inverse, rhs)      # [B at origin, dB/du, dB/dv] per channel
-        dh = np.einsum("mi,mic->mc", mu, coef[s_pos, 1:])
+        dh = mu[:, :1] * coef[s_pos, 1] + mu[:, 1:] * coef[s_pos, 2]
         # (on the receiver node: a leaf, or a face cluster whose leaves all take it)
         node_dh = to_receiver @ dh
         # a gradient has zero mean over its source: its corrections only move the source's
