@@ -1563,7 +1563,9 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
 def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) bool: nodes recv whose bounding sphere lies wholly behind (or touches) the plane of
     their planar source src: the exact form factor is 0 at each of their points, which must
-    lie in front (``transfer._point_form_factor``). Volume-cluster sources: False. (The
+    lie in front (``transfer._point_form_factor``), where those points lie in the sphere: on
+    flat patches (a curved patch's points are on its true surface, which bulges beyond its
+    triangles' sphere: callers leave such receivers out). Volume-cluster sources: False. (The
     sphere finds 91-97 % of the triangles whose corners are all behind, at a third of the cost.)"""
     height = np.einsum("mc,mc->m", nodes.normal[src], nodes.center[recv] - nodes.poly[src, 0])
     return (nodes.kind[src] != VOLUME) & (height + nodes.radius[recv] <= 0.0)
@@ -1644,11 +1646,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     evaluated = 0
     n_below = np.diff(below.indptr)
     failed = 0.0                # share of the last round's fits that did not fit
+    # (nodes with a curved patch at or below them: their points may lie outside their sphere)
+    curved = (below @ (nodes.curve[leaves, 6] > 0).astype(np.float64)) > 0
     while len(recv):
         # (a receiver wholly behind its planar source's plane gets nothing from it, nor do its
         # leaves; with one ray a point it leaves now, no fit tried nor leaf gathered)
         if state.periodic is None:
-            ahead = ~(behind_source(nodes, recv, src) & (rays == 1))
+            ahead = ~(behind_source(nodes, recv, src) & (rays == 1) & ~curved[recv])
             recv, src, rays, origin = recv[ahead], src[ahead], rays[ahead], origin[ahead]
         descend = inner[recv]
         # a fit of a partly shadowed link costs a ray to each of the source's points from
@@ -1730,7 +1734,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (a leaf wholly behind its planar source's plane gets nothing from it: no wave; in the
     # furnished room 13 % of these pairs)
     if state.periodic is None:
-        lit = ~behind_source(nodes, pair_node, pair_src)
+        lit = ~(behind_source(nodes, pair_node, pair_src) & ~curved[pair_node])
         pair_node, pair_src, pair_rays = pair_node[lit], pair_src[lit], pair_rays[lit]
     # (the volume clusters' samples of the waves are kept for their transfers' split by triangle)
     log = SampleLog() if OWN_RADIOSITY else None
