@@ -330,19 +330,17 @@ def _keep(state: State, links: Links) -> np.ndarray:
     planar_s = nodes.kind[s] != VOLUME
     tol = 0.1 * state.offset
     # signed heights of the other end's bounding sphere above each end's plane
-    h_rs = np.einsum("mc,mc->m", nodes.normal[r], nodes.center[s] - nodes.poly[r, 0]) + nodes.radius[s]
-    h_sr = np.einsum("mc,mc->m", nodes.normal[s], nodes.center[r] - nodes.poly[s, 0]) + nodes.radius[r]
-    possible = (~planar_r | (h_rs > tol)) & (~planar_s | (h_sr > tol))
+    possible = (~planar_r | (sphere_height(nodes, s, r) > tol)) & (~planar_s | (sphere_height(nodes, r, s) > tol))
     keep[dark] = possible & ((links.err_ff[dark] > 0) | ~planar_s)
     return keep
 
 
 def refine(state: State, source: SourceState, eps: float, max_links: int,
-           max_waves: int | None = None, errors: tuple | None = None) -> tuple[bool, bool]:
+           max_waves: int | None = None, estimated: "Estimate | None" = None) -> tuple[bool, bool]:
     """Stage refine: waves until every link is under eps (W), or ``max_waves`` waves;
-    returns (changed, capped). ``errors``: (links, receiver terms, source terms) as
-    ``estimate`` found them with the same ``source``: while ``state.links`` is still those
-    links, the first wave takes them instead of computing them again; or None."""
+    returns (changed, capped). ``estimated``: the ``estimate`` made with the same ``source``:
+    while ``state.links`` are still the links it judged, the first wave takes their errors
+    from it instead of computing them again; or None."""
     t0 = time.perf_counter()
     nodes = state.nodes
     changed = capped = False
@@ -354,8 +352,8 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         fresh = np.arange(checked, len(links))
         part = links if checked == 0 else links.select(fresh)
         source = source.grow(nodes)
-        if errors is not None and checked == 0 and errors[0] is links:
-            rec, src_term = errors[1:]
+        if estimated is not None and checked == 0 and estimated.links is links:
+            rec, src_term = estimated.receiver, estimated.source
         else:
             rec, src_term = power_errors(nodes, part, source)
         dec = choose(nodes, part, rec, src_term, eps, state.min_area)
@@ -1560,6 +1558,12 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
     return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
 
 
+def sphere_height(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(M,) m: the signed height of the top of node a's bounding sphere over the plane of b
+    (its normal through its polygon's first corner): <= 0 where all of a lies behind it."""
+    return np.einsum("mc,mc->m", nodes.normal[b], nodes.center[a] - nodes.poly[b, 0]) + nodes.radius[a]
+
+
 def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) bool: nodes recv whose bounding sphere lies wholly behind (or touches) the plane of
     their planar source src: the exact form factor is 0 at each of their points, which must
@@ -1567,8 +1571,7 @@ def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray
     flat patches (a curved patch's points are on its true surface, which bulges beyond its
     triangles' sphere: callers leave such receivers out). Volume-cluster sources: False. (The
     sphere finds 91-97 % of the triangles whose corners are all behind, at a third of the cost.)"""
-    height = np.einsum("mc,mc->m", nodes.normal[src], nodes.center[recv] - nodes.poly[src, 0])
-    return (nodes.kind[src] != VOLUME) & (height + nodes.radius[recv] <= 0.0)
+    return (nodes.kind[src] != VOLUME) & (sphere_height(nodes, recv, src) <= 0.0)
 
 
 def first_rays(state: State, links: Links, node: np.ndarray, src: np.ndarray, link: np.ndarray, rays: np.ndarray,
@@ -1646,14 +1649,21 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     evaluated = 0
     n_below = np.diff(below.indptr)
     failed = 0.0                # share of the last round's fits that did not fit
-    # (nodes with a curved patch at or below them: their points may lie outside their sphere)
+    # (nodes with a curved patch at or below them: their points may lie outside their sphere;
+    # a periodic source's images may lie in front of its plane)
     curved = (below @ (nodes.curve[leaves, 6] > 0).astype(np.float64)) > 0
+
+    def dark(node: np.ndarray, source: np.ndarray) -> np.ndarray:
+        """(M,) bool: pairs node <- source whose transfer is exactly 0 (``behind_source``)."""
+        if state.periodic is not None:
+            return np.zeros(len(node), bool)
+        return behind_source(nodes, node, source) & ~curved[node]
+
     while len(recv):
         # (a receiver wholly behind its planar source's plane gets nothing from it, nor do its
         # leaves; with one ray a point it leaves now, no fit tried nor leaf gathered)
-        if state.periodic is None:
-            ahead = ~(behind_source(nodes, recv, src) & (rays == 1) & ~curved[recv])
-            recv, src, rays, origin = recv[ahead], src[ahead], rays[ahead], origin[ahead]
+        ahead = ~(dark(recv, src) & (rays == 1))
+        recv, src, rays, origin = recv[ahead], src[ahead], rays[ahead], origin[ahead]
         descend = inner[recv]
         # a fit of a partly shadowed link costs a ray to each of the source's points from
         # each of the node's points; where the leaves below cost no more with their own
@@ -1733,9 +1743,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     del pair_link
     # (a leaf wholly behind its planar source's plane gets nothing from it: no wave; in the
     # furnished room 13 % of these pairs)
-    if state.periodic is None:
-        lit = ~(behind_source(nodes, pair_node, pair_src) & ~curved[pair_node])
-        pair_node, pair_src, pair_rays = pair_node[lit], pair_src[lit], pair_rays[lit]
+    lit = ~dark(pair_node, pair_src)
+    pair_node, pair_src, pair_rays = pair_node[lit], pair_src[lit], pair_rays[lit]
     # (the volume clusters' samples of the waves are kept for their transfers' split by triangle)
     log = SampleLog() if OWN_RADIOSITY else None
     g_ff, g_var, g_shadow, seconds, g_pts, pair_row = _logged_pairs(state, solved, log, pair_node, pair_src, pair_rays)
@@ -2066,6 +2075,7 @@ class Estimate:
     relative: float
     reference_mean: float  # W/m^2: the mean the estimate is relative to (``reference_mean``)
     reflected_mean: float  # W/m^2: mean B - E
+    links: Links | None = None  # the links whose errors these are
 
     @property
     def link_errors(self) -> np.ndarray:
@@ -2081,7 +2091,7 @@ def estimate(state: State, solved: Solved, source: SourceState) -> Estimate:
     total = float(np.sum(receiver + src)) + float(d.sum())
     state.timing["estimate"] += time.perf_counter() - t
     return Estimate(receiver, src, d, total / max(state.counted_area * mean, 1e-300), mean,
-                    reflected_mean(state, solved))
+                    reflected_mean(state, solved), state.links)
 
 
 def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate:
@@ -2151,7 +2161,6 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
     try:
         while True:
             src_state = source_state(state, solved)
-            links_estimated = state.links
             est = estimate(state, solved, src_state)
             history.append(est.relative)
             bar.set_postfix(estimate=f"{est.relative:.4f}", links=len(state.links))
@@ -2169,8 +2178,7 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
                 resampled |= split_direct(state, leaves, eps)
             # one wave per pass: the children's errors are judged after the next solve, from
             # the radiosity they bring (their parents' errors and eps were judged without it)
-            changed, capped = refine(state, src_state, eps, max_links, max_waves=1,
-                                     errors=(links_estimated, est.receiver, est.source))
+            changed, capped = refine(state, src_state, eps, max_links, max_waves=1, estimated=est)
             if len(state.nodes.leaves) != len(leaves):
                 direct_of_new_leaves(state)
             passes += 1
