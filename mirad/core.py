@@ -1219,6 +1219,32 @@ def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centr
     return hit[node_start[inverse[owner]] + np.arange(len(leaf)) - row_start[owner]]
 
 
+def separated_children(state: State, ids: np.ndarray) -> np.ndarray:
+    """(M,) bool: split triangle nodes ids (M,) that a surface crosses: one of their children
+    lies on its far side from the node's points (one ray from their weighted centre to each
+    child's centroid, along the surface). Their pairs cannot stay on them and reach the
+    children at their mean: the children behind the surface would get the light of the points
+    in front. Curved patches (their points off the triangle's plane) are not tested."""
+    nodes = state.nodes
+    ids = np.asarray(ids, np.int64)
+    out = np.zeros(len(ids), bool)
+    flat = np.flatnonzero(nodes.curve[ids, 6] <= 0)
+    kids = nodes.children[ids[flat]]
+    own, slot = np.nonzero(kids >= 0)
+    if not len(own):
+        return out
+    parent, child = ids[flat][own], kids[own, slot]
+    x0 = np.einsum("mk,mkc->mc", nodes.recv_w[parent].astype(np.float64), nodes.recv_pts[parent].astype(np.float64))
+    hit = blocked(state.scene.mi_scene, x0, nodes.poly[child, :3].astype(np.float64).mean(axis=1),
+                  nodes.normal[parent].astype(np.float64), state.offset)
+    state.rays += len(hit)
+    # (a child wholly inside closed geometry, the floor under a box standing on it, gets no
+    # light whatever reaches it: ``state.buried``)
+    hit &= state.buried[child] < 1.0
+    np.logical_or.at(out, flat[own], hit)
+    return out
+
+
 def gather_allowance(ff: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tolerance: float) -> np.ndarray:
     """(M,) W^2/m^4: the variance of its visibility noise a gathered pair (M,) may have.
 
@@ -1803,11 +1829,13 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # pairs the last one made, on the leaves it made)
     pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row]
     kept = []
+    link_moved = np.zeros(len(links), bool)     # links on leaves the loop below moved to their children
     for _ in range(MAX_SHADOW_SPLITS):
-        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow = pairs_now[:6]
-        over = (g_shadow * output_share(state, pair_node) > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node],
-                                                                           tol)) & \
-            (nodes.kind[pair_node] == TRIANGLE) & nodes.splittable(state.min_area)[pair_node]
+        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = pairs_now[:7]
+        share = output_share(state, pair_node)
+        allowed = gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
+        over = (g_shadow * share > allowed) & (nodes.kind[pair_node] == TRIANGLE) & \
+            nodes.splittable(state.min_area)[pair_node]
         if not over.any():
             break
         ids = np.unique(pair_node[over])
@@ -1816,16 +1844,42 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         direct_of_new_leaves(state)
         resample_split_direct(state, np.arange(n_before, len(nodes)), direct_budget)
         h_node = np.concatenate([h_node, h_node[nodes.parent[n_before:]]])
+        # a split leaf that a surface crosses (``separated_children``) passes its light down at its
+        # mean only where that is its children's: its pairs whose light varies over its points by
+        # more than their share of the tolerance, the fits read at its centroid and the passes'
+        # links on it are taken at the children's points. (Pushed down, a floor cell that a
+        # partition crosses gave its child behind the partition the light of a lamp in front:
+        # 1.08 W/m^2 where its own points read 0.15, +7.7 % on the cell)
+        crossed = ids[separated_children(state, ids)]
+        moved_node, moved_src, moved_rays = [], [], []
+        if len(crossed):
+            on_crossed = np.flatnonzero(np.isin(pair_node, crossed))
+            spread = (nodes.recv_w[pair_node[on_crossed]] *
+                      np.abs(g_pts[on_crossed] - g_ff[on_crossed, None].astype(np.float32))).sum(axis=1)
+            over[on_crossed[(b_src[pair_src[on_crossed]] * spread) ** 2 * share[on_crossed] > allowed[on_crossed]]] = True
+            for j, part in enumerate(smooth_parts):
+                away = np.isin(leaves[part[0]], crossed)
+                if away.any():
+                    moved_node.append(leaves[part[0][away]])
+                    moved_src.append(part[1][away])
+                    moved_rays.append(np.ones(int(away.sum()), np.int64))
+                    smooth_parts[j] = tuple(a[~away] for a in part)
+            from_links = np.flatnonzero(np.isin(links.recv, crossed) & ~link_moved)
+            link_moved[from_links] = True
+            moved_node.append(links.recv[from_links].astype(np.int64))
+            moved_src.append(links.src[from_links].astype(np.int64))
+            moved_rays.append(np.where(link_partial[from_links], GATHER_RAYS, 1))
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
         stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest]))
         kept.append([a[~on_split] for a in pairs_now])
-        kids = nodes.children[pair_node[over]]
+        parent_node = np.concatenate([pair_node[over]] + moved_node)
+        kids = nodes.children[parent_node]
         own, slot = np.nonzero(kids >= 0)
         # (a child's noise weighs by its share of the input triangle, a quarter of its parent's:
         # it starts at a quarter of its parent's rays, and gets more where they disagree)
-        k_node, k_src = kids[own, slot].astype(np.int64), pair_src[over][own]
-        k_rays = np.maximum(pair_rays[over][own] // GATHER_RAYS, 1)
+        k_node, k_src = kids[own, slot].astype(np.int64), np.concatenate([pair_src[over]] + moved_src)[own]
+        k_rays = np.maximum(np.concatenate([pair_rays[over]] + moved_rays)[own] // GATHER_RAYS, 1)
         k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
         k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node,
                                      log, k_row)
@@ -1880,7 +1934,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # transfers: each leaf then gathers from the sources' means what reaches its own points,
     # and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered mean
     # counts its buried points as unlit; it lands on its visible part, as in ``solve``
-    keep = np.flatnonzero(~inner[links.recv])
+    keep = np.flatnonzero(~inner[links.recv] & ~link_moved)
     transfers = sp.csr_matrix((np.concatenate([links.ff[keep].astype(np.float64), ff]),
                                (np.concatenate([links.recv[keep], recv]), np.concatenate([links.src[keep], srcs]))),
                               shape=(n, n))

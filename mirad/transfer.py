@@ -339,6 +339,11 @@ def ray_target(i, j, rays_per_point: int, key=0):
     return (key + i * 7 + j * step) % pattern
 
 
+#: A volume cluster's draw weighs the face clusters below it by what each part may send to the
+#: point (``_reach``), as it does its volume levels, rather than by area (``source_point``).
+WEIGH_FACES_IN_VOLUMES = True
+
+
 def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each), the
     triangle node it is on (mi.UInt32) and the ratio (mi.Float) of the probability of
@@ -359,8 +364,11 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     draw stays unbiased (the transfer is divided by the probability it was drawn with) and
     follows the kernel over the cluster's nearer and facing parts, where drawing by area spent
     most samples on parts that send little: a leaf under a canopy gathers from clusters of
-    leaves around it, a few of which bring most of the light. Face clusters below are drawn by
-    area, as planar sources are."""
+    leaves around it, a few of which bring most of the light. The face clusters below a volume
+    cluster are weighed so too: by area, a plate 1 m over a ground of 32 large triangles drew
+    the one below it, a sixth of its light, one time in 32, and its transfer's deviation over
+    seeds was 22 % at four rays a point (8 % weighed). A face cluster that is the link's own
+    source is drawn by area, a stratified quadrature of it."""
     u, v = shifted_hammersley(t, pattern, key)
     node = mi.UInt32(s)
     on_triangle = dr.gather(mi.UInt32, buf.kind, node) == TRIANGLE
@@ -368,7 +376,7 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     def kind(node):
         return dr.gather(mi.UInt32, buf.kind, node)
 
-    def descend(node, left, drawn, weigh: bool):
+    def descend(node, left, drawn, weigh: bool, where=True):
         c0 = dr.gather(mi.UInt32, buf.child[0], node)
         c1 = dr.gather(mi.UInt32, buf.child[1], node)
         a0 = dr.gather(mi.Float, buf.area, c0)
@@ -376,7 +384,7 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
         by_area = share
         if weigh:
             r0, r1 = _reach(buf, c0, x, nx), _reach(buf, c1, x, nx)
-            share = dr.select(r0 + r1 > 0, r0 / dr.maximum(r0 + r1, _TINY), share)
+            share = dr.select(where & (r0 + r1 > 0), r0 / dr.maximum(r0 + r1, _TINY), share)
         first = left < share
         nxt = dr.select(first, left / dr.maximum(share, _TINY), (left - share) / dr.maximum(1.0 - share, _TINY))
         if weigh:
@@ -385,13 +393,16 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
                                                 (1.0 - by_area) / dr.maximum(1.0 - share, _TINY)))
         return dr.select(first, c0, c1), dr.clip(nxt, 0.0, 1.0 - 2 ** -24), drawn
 
-    # (the volume clusters' levels first, weighed where x is given, then the face clusters' by
-    # area: the weights are computed only at the levels that use them)
+    # (the volume clusters' levels first, weighed where x is given, then the face clusters':
+    # weighed below a volume cluster, by area on a face-cluster source; the weights are computed
+    # only where a level may use them)
+    weigh_faces = x is not None and WEIGH_FACES_IN_VOLUMES
+    below_volume = kind(node) == VOLUME
     state = (node, mi.Float(u), dr.full(mi.Float, 1.0, dr.width(node)))
     state = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) == VOLUME,
                           body=lambda node, left, drawn: descend(node, left, drawn, x is not None))
     node, _, drawn = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) != TRIANGLE,
-                                   body=lambda node, left, drawn: descend(node, left, drawn, False))
+                                   body=lambda node, left, drawn: descend(node, left, drawn, weigh_faces, below_volume))
     w = to_unit(hash_u32(key ^ hash_u32(t + 0x2545F491)))
     y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), dr.select(on_triangle, u, w), v)
     n = dr.gather(mi.Vector3f, buf.normal, node)
