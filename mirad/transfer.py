@@ -58,6 +58,7 @@ class NodeBuffers:
     curve: tuple         # centre, axis (mi.Vector3f) and radius (mi.Float) of a triangle's true surface
     sphere: tuple        # bounding-sphere centre (mi.Vector3f) and radius (mi.Float)
     flat: object         # mi.Bool (N,): a triangle or face cluster all of whose points lie in its plane
+    volume: np.ndarray   # (N,) bool, numpy: volume clusters (which waves draw below one, ``evaluate``)
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
@@ -70,7 +71,8 @@ class NodeBuffers:
                    to_float(nodes.fill), to_float(nodes.area), mi.UInt32(np.asarray(nodes.kind, np.uint32)),
                    points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
                    (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
-                   (points(nodes.center), to_float(nodes.radius)), mi.Bool(flat_nodes(nodes)))
+                   (points(nodes.center), to_float(nodes.radius)), mi.Bool(flat_nodes(nodes)),
+                   np.asarray(nodes.kind) == VOLUME)
 
 
 @dataclass
@@ -137,11 +139,19 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     rays = 0
     per_launch = max(1, MAX_LANES // (k * rays_per_point))
     found = []
+    # (the links from volume clusters last, in launches of their own where they fill one: only
+    # theirs weigh the face clusters they descend to, ``source_point``; a link's lanes depend on
+    # the link, not on where it is in the wave)
+    volume = buf.volume[src]
+    order = np.argsort(volume, kind="stable") if volume.any() and not volume.all() else None
+    if order is not None:
+        recv, src, volume = recv[order], src[order], volume[order]
     # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
     with exact_arithmetic():
         for a in range(0, m, per_launch):
             b = min(m, a + per_launch)
-            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset, periodic)
+            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset, periodic,
+                           weigh_faces=WEIGH_FACES_IN_VOLUMES and bool(volume[a:b].any()))
             # (the samples evaluated with the wave's sums: kept unevaluated, their rays would be traced again)
             sampled = (lanes.g_volume * lanes.v, lanes.tri) if samples else ()
             g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _reduce(b - a, k, rays_per_point, lanes.g_exact, lanes.kernel,
@@ -149,7 +159,13 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
             rays += ra
             if samples:
                 found.append(_arriving(*sampled, k, rays_per_point, a))
-    return PointTransfers(g, gv, gp, g2, rays, join_samples(found) if samples else None)
+    arrived = join_samples(found) if samples else None
+    if order is not None:
+        for out in (g, gv, gp, g2):
+            out[order] = out.copy()
+        if samples:
+            arrived = (order[arrived[0]],) + arrived[1:]
+    return PointTransfers(g, gv, gp, g2, rays, arrived)
 
 
 def _arriving(value, tri, k: int, r_count: int, first: int):
@@ -212,9 +228,10 @@ class Lanes(NamedTuple):
     tri: object          # mi.UInt32: the triangle node the target is on
 
 
-def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None) -> Lanes:
+def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None,
+           weigh_faces: bool = False) -> Lanes:
     """One lane per shadow ray of links recv <- src (M,), R = r_count rays at each of the
-    receivers' K points (lane = (link K + point) R + ray)."""
+    receivers' K points (lane = (link K + point) R + ray). ``weigh_faces``: as ``source_point``'s."""
     m = len(recv)
     k = RECEIVER_POINTS
     per_link = k * r_count
@@ -261,7 +278,8 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
     t = ray_target(i, j, r_count, key)
     # (a volume cluster's triangle is drawn by what it may send to the point, ``source_point``;
     # a periodic source's images are drawn by area)
-    y, ny, tri, drawn = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()))
+    y, ny, tri, drawn = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()),
+                                     weigh_faces=weigh_faces)
     # a volume cluster: the exact form factor of the triangle the point is on, over the
     # probability of drawing it: unbiased, and bounded by the cluster's area over the
     # triangle's times what the draw favoured it by, where a point-to-point kernel is not (a
@@ -344,7 +362,7 @@ def ray_target(i, j, rays_per_point: int, key=0):
 WEIGH_FACES_IN_VOLUMES = True
 
 
-def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
+def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None, weigh_faces: bool = False):
     """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each), the
     triangle node it is on (mi.UInt32) and the ratio (mi.Float) of the probability of
     drawing that triangle by area to the probability it was drawn with, for the link whose
@@ -365,7 +383,8 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     follows the kernel over the cluster's nearer and facing parts, where drawing by area spent
     most samples on parts that send little: a leaf under a canopy gathers from clusters of
     leaves around it, a few of which bring most of the light. The face clusters below a volume
-    cluster are weighed so too: by area, a plate 1 m over a ground of 32 large triangles drew
+    cluster are weighed so too, where ``weigh_faces`` (``WEIGH_FACES_IN_VOLUMES`` for the waves
+    that hold volume-cluster links): by area, a plate 1 m over a ground of 32 large triangles drew
     the one below it, a sixth of its light, one time in 32, and its transfer's deviation over
     seeds was 22 % at four rays a point (8 % weighed). A face cluster that is the link's own
     source is drawn by area, a stratified quadrature of it."""
@@ -396,7 +415,7 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None):
     # (the volume clusters' levels first, weighed where x is given, then the face clusters':
     # weighed below a volume cluster, by area on a face-cluster source; the weights are computed
     # only where a level may use them)
-    weigh_faces = x is not None and WEIGH_FACES_IN_VOLUMES
+    weigh_faces = weigh_faces and x is not None
     below_volume = kind(node) == VOLUME
     state = (node, mi.Float(u), dr.full(mi.Float, 1.0, dr.width(node)))
     state = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) == VOLUME,
