@@ -1864,7 +1864,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # partition crosses gave its child behind the partition the light of a lamp in front:
         # 1.08 W/m^2 where its own points read 0.15, +7.7 % on the cell)
         crossed = ids[separated_children(state, ids)]
-        moved_node, moved_src, moved_rays = [], [], []
+        moved_node, moved_src = [], []
         if len(crossed):
             on_crossed = np.flatnonzero(np.isin(pair_node, crossed))
             spread = (nodes.recv_w[pair_node[on_crossed]] *
@@ -1875,13 +1875,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                 if away.any():
                     moved_node.append(leaves[part[0][away]])
                     moved_src.append(part[1][away])
-                    moved_rays.append(np.ones(int(away.sum()), np.int64))
                     smooth_parts[j] = tuple(a[~away] for a in part)
             from_links = np.flatnonzero(np.isin(links.recv, crossed) & ~link_moved)
             link_moved[from_links] = True
             moved_node.append(links.recv[from_links].astype(np.int64))
             moved_src.append(links.src[from_links].astype(np.int64))
-            moved_rays.append(np.where(link_partial[from_links], GATHER_RAYS, 1))
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
         stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest]))
@@ -1890,9 +1888,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         kids = nodes.children[parent_node]
         own, slot = np.nonzero(kids >= 0)
         # (a child's noise weighs by its share of the input triangle, a quarter of its parent's:
-        # it starts at a quarter of its parent's rays, and gets more where they disagree)
+        # it starts at a quarter of its parent's rays, and gets more where they disagree; the
+        # fits and links moved off a crossed leaf start at one)
         k_node, k_src = kids[own, slot].astype(np.int64), np.concatenate([pair_src[over]] + moved_src)[own]
-        k_rays = np.maximum(np.concatenate([pair_rays[over]] + moved_rays)[own] // GATHER_RAYS, 1)
+        first = np.maximum(pair_rays[over] // GATHER_RAYS, 1)
+        k_rays = np.concatenate([first, np.ones(len(parent_node) - len(first), first.dtype)])[own]
         k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
         k_seconds += _resample_noisy(state, solved, k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, b_src, h_node,
                                      log, k_row)
