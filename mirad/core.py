@@ -1362,7 +1362,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     d = (pts - origin[own_s][:, None]) / size[own_s][:, None, None]
     u, v = np.einsum("pkc,pc->pk", d, t1[own_s]), np.einsum("pkc,pc->pk", d, t2[own_s])
     design = np.stack([np.ones_like(u), u, v], axis=2)        # (P, K, 3)
-    per_point = np.einsum("pk,pki,pkj->pij", wts, design, design).reshape(-1, 9)
+    weighted_design = wts[:, :, None] * design                 # (P, K, 3)
+    per_point = np.einsum("pki,pkj->pij", weighted_design, design).reshape(-1, 9)
     gram = np.stack([np.bincount(own_s, weights=per_point[:, j], minlength=len(sources)) for j in range(9)],
                     axis=1).reshape(-1, 3, 3)
     regular = np.abs(np.linalg.det(gram)) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
@@ -1401,7 +1402,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved_area = nodes.area[r]
 
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
-    weighted_design = wts[:, :, None] * design                 # (P, K, 3)
     design_sum = weighted_design.sum(axis=1)                   # (P, 3)
     design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
@@ -1412,18 +1412,21 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
     src_own = pair_src[mine]
+    # (each fitted leaf's pairs, in their order: its row of a 0/1 map over them, GATHER_CHUNK
+    # pairs a map)
+    own_pairs = [(part, sp.csr_matrix((np.ones(len(own_row[part])), (own_row[part], np.arange(len(own_row[part])))),
+                                      shape=(len(fit_leaves), len(own_row[part])))) for part in _chunks(len(own_row))]
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
         b_node = pull @ b_leaf                                                  # (N, C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        # (added pair by pair in their order, one point and channel at a time: the sums a
-        # sparse product over all of them makes, without their (M'', K, C) float64 values at once)
+        # (GATHER_CHUNK pairs at a time: their (M'', K, C) float64 values are not made at once)
         hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels))
-        b_src = b_node[src_own]
-        for k in range(RECEIVER_POINTS):
+        for part, to_leaf in own_pairs:
+            b_src = b_node[src_own[part]]
             for c in range(channels):
-                hl[:, k, c] = np.bincount(own_row, weights=own_points[:, k] * b_src[:, c], minlength=len(fit_leaves))
+                hl[:, :, c] += to_leaf @ (own_points[part] * b_src[:, c:c + 1])
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1455,13 +1458,13 @@ def _area_moments(nodes: Nodes, leaf_nodes: np.ndarray, owner: np.ndarray, count
     centre = corners.mean(axis=1)
     area = nodes.area[leaf_nodes]
     total = np.maximum(np.bincount(owner, weights=area, minlength=count), 1e-300)
-    centroid = np.stack([np.bincount(owner, weights=area * centre[:, c], minlength=count) for c in range(3)],
-                        axis=1) / total[:, None]
+    # (each source's leaves, in their order: the sums over a 0/1 map's rows, all columns at once)
+    of_source = sp.csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))), shape=(count, len(owner)))
+    centroid = (of_source @ (area[:, None] * centre)) / total[:, None]
     dc = corners - centre[:, None]
     offset = centre - centroid[owner]
     own = np.einsum("lkc,lkd->lcd", dc, dc) / 12.0 + offset[:, :, None] * offset[:, None, :]
-    cov = np.stack([np.bincount(owner, weights=area * own[:, i, j], minlength=count)
-                    for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3) / total[:, None, None]
+    cov = (of_source @ (area[:, None] * own.reshape(-1, 9))).reshape(-1, 3, 3) / total[:, None, None]
     return centroid, cov
 
 
@@ -1524,9 +1527,10 @@ def _far_moments(nodes: Nodes, recv: np.ndarray, s_pos: np.ndarray, centroid: np
         return np.concatenate([_far_moments(nodes, recv[c], s_pos[c], centroid, cov, normal, size, frame, ff[c])
                                for c in _chunks(len(recv))])
     grad = kernel_log_gradient(nodes, recv, centroid[s_pos], size[s_pos])
-    cg = np.einsum("mij,mj->mi", cov[s_pos], grad)
     weight = ff / size[s_pos]
-    return np.stack([np.einsum("mc,mc->m", cg, frame[i][s_pos]) for i in range(2)], axis=1) * weight[:, None]
+    # ((C g) . t = g . (C t), C symmetric: the sources' (S, 3) C t, not each transfer's C)
+    return np.stack([np.einsum("mc,mc->m", grad, np.einsum("sij,sj->si", cov, frame[i])[s_pos]) for i in range(2)],
+                    axis=1) * weight[:, None]
 
 
 def kernel_log_gradient(nodes: Nodes, recv: np.ndarray, at: np.ndarray, reach: np.ndarray) -> np.ndarray:
