@@ -1376,7 +1376,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     row_of = np.full(n, -1, np.int64)
     row_of[fit_leaves] = np.arange(len(fit_leaves))
     mine = np.flatnonzero(row_of[pair_node] >= 0)
-    # each fitted leaf's own pairs, in order (the row each of them adds to)
+    # each fitted leaf's own pairs, in order (the row each of them adds to), grouped by leaf
+    mine = mine[np.argsort(row_of[pair_node[mine]], kind="stable")]
     own_row = row_of[pair_node[mine]]
     # (float32 as gathered: each product with the sources' radiosity is taken in float64)
     own_points = points[mine]
@@ -1412,21 +1413,26 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
     src_own = pair_src[mine]
-    # (each fitted leaf's pairs, in their order: its row of a 0/1 map over them, GATHER_CHUNK
-    # pairs a map)
-    own_pairs = [(part, sp.csr_matrix((np.ones(len(own_row[part])), (own_row[part], np.arange(len(own_row[part])))),
-                                      shape=(len(fit_leaves), len(own_row[part])))) for part in _chunks(len(own_row))]
+    # (each fitted leaf's pairs, in their order: its row of a 0/1 map over them; about
+    # GATHER_CHUNK pairs a map, each holding whole leaves, so that every leaf's sum runs over
+    # its pairs in one order however they are chunked)
+    cuts = np.unique(np.searchsorted(own_row, own_row[np.arange(0, len(own_row), GATHER_CHUNK)]))
+    own_pairs = []
+    for a, b in zip(cuts, np.append(cuts[1:], len(own_row))):
+        first, last = own_row[a], own_row[b - 1] + 1
+        own_pairs.append((slice(a, b), first, last, sp.csr_matrix(
+            (np.ones(b - a), (own_row[a:b] - first, np.arange(b - a))), shape=(last - first, b - a))))
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
         b_node = pull @ b_leaf                                                  # (N, C)
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
-        # (GATHER_CHUNK pairs at a time: their (M'', K, C) float64 values are not made at once)
+        # (a map at a time: their (M'', K, C) float64 values are not made at once)
         hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels))
-        for part, to_leaf in own_pairs:
+        for part, first, last, to_leaf in own_pairs:
             b_src = b_node[src_own[part]]
             for c in range(channels):
-                hl[:, :, c] += to_leaf @ (own_points[part] * b_src[:, c:c + 1])
+                hl[first:last, :, c] = to_leaf @ (own_points[part] * b_src[:, c:c + 1])
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1683,8 +1689,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # gather, and noisier than the fit: the room at 0.1 0.95 -> 0.87 % L1 in the same time)
     if LINK_FIRST_RAYS:
         rays = first_rays(state, links, recv, src, origin, rays, b_src, h_node, tol)
-    smooth_parts = []          # (leaf position, source, transfer, variance) from linear fits
-    smooth_links_at = []       # (receiver node, source, mean transfer) of the fitted links
+    smooth_parts = []          # (leaf position, source, transfer, variance, fit) from linear fits
+    smooth_links_at = []       # (receiver node, source, mean transfer, fit) of the fitted links
+    fit_size = []              # (fits,) per round: the leaves below each fit
     pairs = [(np.zeros(0, np.int64),) * 4]   # (leaf node, source, rays, link) to gather at the leaf's points
     seconds_in_waves = 0.0
     # (the direct light of the leaves it splits is timed as "direct", not again here)
@@ -1741,6 +1748,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         ok = np.flatnonzero(smooth)
         leaf, owner = _leaf_positions_below(below, recv[ok])
         k = ok[owner]
+        fit_id = sum(len(f) for f in fit_size) + np.arange(len(ok))
+        fit_size.append(np.bincount(owner, minlength=len(ok)))
         # (a leaf that a surface separates from the receiver's points takes the link at its own
         # points: the fit would carry the light across that surface)
         across = crossed_leaves(state, below, leaves, centroid, recv[ok], x0[ok], leaf, owner) & \
@@ -1766,8 +1775,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                                  nodes.area[leaves[leaf]], field)
         value = field * (1.0 - state.buried[leaves[leaf]])
         # the fit's residual is the interpolation's error, counted like visibility noise
-        smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2))
-        smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1)))
+        smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), (rms[k] * b_src[src[k]]) ** 2, fit_id[owner]))
+        smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1), fit_id))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth)
         tried = np.flatnonzero(whole)
@@ -1967,8 +1976,16 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     solve_time = time.perf_counter() - t1
     # every transfer of the gathered system, on the node it was evaluated on (a smooth link on
     # its face cluster, the others on their leaves)
+    # (a fit that some of its leaves left, for their own points, is on each leaf it kept: on
+    # its receiver it would also bring its gradient's share to the leaves that left it)
+    fit_size = np.concatenate(fit_size + [np.zeros(0, np.int64)])
+    kept_leaves = np.bincount(np.concatenate([p[4] for p in smooth_parts] + [np.zeros(0, np.int64)]),
+                              minlength=len(fit_size))
+    left = kept_leaves < fit_size
+    fit_items = [tuple(a[~left[p[3]]] for a in p[:3]) for p in smooth_links_at] + \
+        [(leaves[p[0][left[p[4]]]], p[1][left[p[4]]], p[2][left[p[4]]]) for p in smooth_parts]
     item_node, item_src, item_ff = (np.concatenate(
-        [a[keep], g] + [p[i] for p in stay] + [p[i] for p in smooth_links_at])
+        [a[keep], g] + [p[i] for p in stay] + [p[i] for p in fit_items])
         for i, (a, g) in enumerate(((links.recv, pair_node), (links.src, pair_src), (links.ff, g_ff))))
     extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_pts,
                            item_node.astype(np.int64), item_src.astype(np.int64), item_ff.astype(np.float64)) \
