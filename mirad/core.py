@@ -1370,7 +1370,9 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # (a leaf's radiosity is its whole area's mean, its buried part dark: over its visible
     # part it is that over the visible share, and a leaf wholly buried says nothing)
     seen = 1.0 - state.buried[leaf_nodes]
-    centroid_of, cov = _area_moments(nodes, leaf_nodes, own_s, len(sources))
+    # (each source's leaves, in their order: a 0/1 map whose products sum over them)
+    to_source = sp.csr_matrix((np.ones(len(own_s)), (own_s, np.arange(len(own_s)))), shape=(len(sources), len(own_s)))
+    centroid_of, cov = _area_moments(nodes, leaf_nodes, own_s, to_source)
     wts = nodes.recv_w[leaf_nodes].astype(np.float64) * (nodes.area[leaf_nodes] * (seen > 1e-9))[:, None]
     normal = nodes.normal[sources]
     t1, t2 = tangents(normal)
@@ -1382,8 +1384,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     design = np.stack([np.ones_like(u), u, v], axis=2)        # (P, K, 3)
     weighted_design = wts[:, :, None] * design                 # (P, K, 3)
     per_point = np.einsum("pki,pkj->pij", weighted_design, design).reshape(-1, 9)
-    gram = np.stack([np.bincount(own_s, weights=per_point[:, j], minlength=len(sources)) for j in range(9)],
-                    axis=1).reshape(-1, 3, 3)
+    gram = (to_source @ per_point).reshape(-1, 3, 3)
     regular = np.abs(np.linalg.det(gram)) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
     inverse = np.zeros_like(gram)
     inverse[regular] = np.linalg.inv(gram[regular])
@@ -1426,7 +1427,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
     inv_seen = 1.0 / np.maximum(seen, 1e-9)
     rho_fit = rho[fit_pos]                                     # (P, C)
-    to_source = sp.csr_matrix((np.ones(len(own_s)), (own_s, np.arange(len(own_s)))), shape=(len(sources), len(own_s)))
     to_receiver = sp.csr_matrix((np.ones(len(r)), (r, np.arange(len(r)))), shape=(n, len(r)))
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
@@ -1473,17 +1473,16 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     return extra
 
 
-def _area_moments(nodes: Nodes, leaf_nodes: np.ndarray, owner: np.ndarray, count: int):
-    """Centroid (S, 3) and covariance (S, 3, 3) of the area of each of ``count`` sources, from
-    its leaves (triangle nodes ``leaf_nodes``, of source ``owner``): a face cluster's bounding
+def _area_moments(nodes: Nodes, leaf_nodes: np.ndarray, owner: np.ndarray, of_source: sp.csr_matrix):
+    """Centroid (S, 3) and covariance (S, 3, 3) of the area of each of S sources, from its
+    leaves (triangle nodes ``leaf_nodes`` (P,), of source ``owner`` (P,); ``of_source`` (S, P) the
+    0/1 map of each source's leaves, in their order, that sums over them): a face cluster's bounding
     rectangle is no model of an L-shaped or sparse cluster. A triangle's own covariance is
     sum_i d_i d_i^T / 12 over its corners' offsets d_i from its centroid."""
     corners = nodes.poly[leaf_nodes, :3].astype(np.float64)
     centre = corners.mean(axis=1)
     area = nodes.area[leaf_nodes]
-    total = np.maximum(np.bincount(owner, weights=area, minlength=count), 1e-300)
-    # (each source's leaves, in their order: the sums over a 0/1 map's rows, all columns at once)
-    of_source = sp.csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))), shape=(count, len(owner)))
+    total = np.maximum(of_source @ area, 1e-300)
     centroid = (of_source @ (area[:, None] * centre)) / total[:, None]
     dc = corners - centre[:, None]
     offset = centre - centroid[owner]
