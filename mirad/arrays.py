@@ -12,8 +12,8 @@ from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-__all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "shadow_ray_length", "row_norm", "to_float", "to_uint",
-           "to_vector3", "to_point3", "scene_diagonal", "group_sum", "group_mean", "channel_max"]
+__all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "DR_PAD", "shadow_ray_length", "row_norm", "dr_buffer",
+           "to_float", "to_uint", "to_bool", "to_vector3", "to_point3", "scene_diagonal", "group_sum", "group_mean", "channel_max"]
 
 #: Largest number of lanes in one Dr.Jit launch (bounds the memory of a wave).
 MAX_LANES = 1 << 22
@@ -23,14 +23,42 @@ RAY_OFFSET = 1e-5
 LEAF_CORNER_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 
 
+#: Elements kept readable past the end of every numpy buffer handed to Dr.Jit (``dr_buffer``).
+DR_PAD = 64
+
+
+def dr_buffer(a, dtype) -> np.ndarray:
+    """(N,) ``a`` flattened and cast to ``dtype``, in a fresh buffer that stays readable DR_PAD
+    elements past its end (zeros), for a Dr.Jit array to be made of.
+
+    On the CPU (LLVM) Dr.Jit maps a contiguous numpy array's memory instead of copying it, and
+    its kernels load whole SIMD packets: 16 lanes with AVX-512, so the last packet of an
+    elementwise kernel reads up to 15 elements past the array's end. Where that end is the end
+    of a mapped page and the next page is not mapped, the read faults: a SIGSEGV inside
+    JIT-compiled code, at a page boundary, for about one array size in a thousand (a large
+    array is a page-aligned mapping of its own; ``tests/test_arrays.py`` builds one that ends
+    at a guard page). A buffer with room after its end is never read past it; gathers are
+    masked and were never the problem. Every numpy -> Dr.Jit conversion in mirad goes
+    through here (``to_float``, ``to_uint``, ``to_bool`` and the vectors made of them)."""
+    flat = np.ravel(np.asarray(a))
+    out = np.zeros(len(flat) + DR_PAD, dtype)
+    out[:len(flat)] = flat
+    return out[:len(flat)]
+
+
 def to_float(a) -> "mi.Float":
     """mi.Float of an array (flattened, float32)."""
-    return mi.Float(np.ascontiguousarray(np.ravel(a), dtype=np.float32))
+    return mi.Float(dr_buffer(a, np.float32))
 
 
 def to_uint(a) -> "mi.UInt32":
     """mi.UInt32 of an array of non-negative integers (flattened)."""
-    return mi.UInt32(np.ascontiguousarray(np.ravel(a), dtype=np.uint32))
+    return mi.UInt32(dr_buffer(a, np.uint32))
+
+
+def to_bool(a) -> "mi.Bool":
+    """mi.Bool of an array of truth values (flattened)."""
+    return mi.Bool(dr_buffer(np.asarray(a, bool), bool))
 
 
 def to_vector3(a) -> "mi.Vector3f":

@@ -31,6 +31,8 @@ from . import _runtime  # noqa: F401
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+from .arrays import to_float, to_uint  # noqa: E402
+
 
 @dataclass
 class ClusterTree:
@@ -190,9 +192,9 @@ class ClusterGeometry:
     @classmethod
     def upload(cls, tree: ClusterTree, patch_area: np.ndarray) -> "ClusterGeometry":
         cum = np.concatenate([[0.0], np.cumsum(patch_area[tree.order])])
-        return cls(len(patch_area), mi.UInt32(tree.order.astype(np.uint32)), mi.Float(cum.astype(np.float32)),
-                   mi.UInt32(tree.lo.astype(np.uint32)), mi.UInt32(tree.hi.astype(np.uint32)),
-                   mi.Float(tree.area.astype(np.float32)), len(patch_area), len(tree))
+        return cls(len(patch_area), to_uint(tree.order), to_float(cum),
+                   to_uint(tree.lo), to_uint(tree.hi),
+                   to_float(tree.area), len(patch_area), len(tree))
 
     def sample_patch(self, cluster, u):
         """Patch (element id) drawn by area inside cluster (index from 0) with u in [0, 1)."""

@@ -150,13 +150,11 @@ def geometry_arrays(geo) -> dict:
 
 
 def _upload_geometry(arrays: dict):
-    import mitsuba as mi
-
+    from .arrays import to_float, to_vector3
     from .visibility import Geometry
 
-    vec = lambda a: mi.Vector3f(mi.Float(a[:, 0].copy()), mi.Float(a[:, 1].copy()), mi.Float(a[:, 2].copy()))  # noqa: E731
-    return Geometry(*(vec(arrays[n]) for n in ("v0", "v1", "v2", "normal", "curve_center", "curve_axis")),
-                    mi.Float(arrays["curve_radius"]), float(arrays["offset"]), int(arrays["size"]))
+    return Geometry(*(to_vector3(arrays[n]) for n in ("v0", "v1", "v2", "normal", "curve_center", "curve_axis")),
+                    to_float(arrays["curve_radius"]), float(arrays["offset"]), int(arrays["size"]))
 
 
 def cluster_arrays(clusters) -> dict | None:
@@ -172,12 +170,11 @@ def cluster_arrays(clusters) -> dict | None:
 def _upload_clusters(arrays: dict | None):
     if arrays is None:
         return None
-    import mitsuba as mi
-
+    from .arrays import to_float, to_uint
     from .cluster import ClusterGeometry
 
-    return ClusterGeometry(arrays["first"], mi.UInt32(arrays["order"]), mi.Float(arrays["cum"]),
-                           mi.UInt32(arrays["lo"]), mi.UInt32(arrays["hi"]), mi.Float(arrays["area"]),
+    return ClusterGeometry(arrays["first"], to_uint(arrays["order"]), to_float(arrays["cum"]),
+                           to_uint(arrays["lo"]), to_uint(arrays["hi"]), to_float(arrays["area"]),
                            arrays["patches"], arrays["count"])
 
 

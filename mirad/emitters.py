@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from . import _runtime  # noqa: F401
-from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_vector3
+from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_uint, to_vector3
 from .visibility import count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -162,8 +162,8 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
     g = lambda a: dr.gather(mi.Vector3f, to_vector3(a), idx)  # noqa: E731
     v0, v1, v2, nrm = g(verts[:, 0]), g(verts[:, 1]), g(verts[:, 2]), g(normals)
     center, axis = g(curve[0]), g(curve[1])
-    radius = dr.gather(mi.Float, mi.Float(np.asarray(curve[2], np.float32)), idx)
-    key = hash_u32(hash_u32(dr.gather(mi.UInt32, mi.UInt32(np.asarray(keys, np.uint32)), idx)
+    radius = dr.gather(mi.Float, to_float(curve[2]), idx)
+    key = hash_u32(hash_u32(dr.gather(mi.UInt32, to_uint(keys), idx)
                             ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995)) + k * 0x632BE5AB)
     u, v = stratified(k, n, key)
     p, nn = project_to_surface(triangle_point(v0, v1, v2, u, v), nrm, center, axis, radius)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .arrays import group_mean, group_sum, to_point3, to_vector3
+from .arrays import group_mean, group_sum, to_bool, to_point3, to_uint, to_vector3
 from .bands import channel_names, is_band_result
 from .errors import OutputError, SettingsError
 from .files import atomic_write, display_colors, exr_bytes, png_bytes, read_csv_text, read_exr
@@ -500,7 +500,7 @@ def _bake_shape(solution, shading, s, tris, uv, b_leaf, b_tri, res, ss, dilate, 
     value = b_tri[tri].copy()
     if len(p):
         leaf, leaf_uv, found = shading.locate(
-            to_point3(p), to_vector3(normal), dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), s, np.uint32)), mi.Bool(np.ones(len(p), bool)))
+            to_point3(p), to_vector3(normal), dr.zeros(mi.Bool, len(p)), to_uint(np.full(len(p), s)), to_bool(np.ones(len(p), bool)))
         leaf, found = np.asarray(leaf.numpy(), np.int64), np.asarray(found.numpy(), bool)
         value[found] = b_leaf[leaf[found]]
         if detail and len(solution.detail_leaves):     # shadow-texture detail inside the leaf

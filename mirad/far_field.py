@@ -60,7 +60,7 @@ def hit_patches(scene, box: PeriodicBox, origins: np.ndarray, directions: np.nda
     escapes or hits a nearer image, -2 where it hits the side of a triangle that has no patch
     (a one-sided surface's back: black).
     """
-    from .arrays import MAX_LANES
+    from .arrays import MAX_LANES, to_float
 
     mi_scene = scene.mi_scene
     shapes = list(mi_scene.shapes())
@@ -81,8 +81,8 @@ def hit_patches(scene, box: PeriodicBox, origins: np.ndarray, directions: np.nda
     out = np.full(len(origins), -1, np.int64)
     for a in range(0, len(origins), MAX_LANES):
         b = min(len(origins), a + MAX_LANES)
-        o = mi.Vector3f(*[mi.Float(np.ascontiguousarray(origins[a:b, k], np.float32)) for k in range(3)])
-        d = mi.Vector3f(*[mi.Float(np.ascontiguousarray(directions[a:b, k], np.float32)) for k in range(3)])
+        o = mi.Vector3f(*[to_float(origins[a:b, k]) for k in range(3)])
+        d = mi.Vector3f(*[to_float(directions[a:b, k]) for k in range(3)])
         si, di, dj = ray_intersect(mi_scene, box, o, d)
         shape = dr.reinterpret_array(mi.UInt32, si.shape)
         valid = si.is_valid()

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
-from .arrays import to_vector3
+from .arrays import to_uint, to_vector3
 from .errors import SettingsError
 
 import drjit as dr  # noqa: E402
@@ -197,7 +197,7 @@ def periodic_reference(scene, box, *, samples_per_triangle: int = 1024, seed: in
         lanes = stop - start
         local = np.arange(start, stop) // n
         first, last = int(local[0]), int(local[-1]) + 1
-        idx = mi.UInt32((local - first).astype(np.uint32))
+        idx = to_uint(local - first)
         v0, v1, v2 = (dr.gather(mi.Vector3f, to_vector3(verts[first:last, c]), idx) for c in range(3))
         nrm = dr.gather(mi.Vector3f, to_vector3(normal[first:last]), idx)
         rng = mi.PCG32(lanes, initstate=mi.UInt64(seed * 0x9E3779B9 + index + 1),

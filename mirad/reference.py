@@ -42,7 +42,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from .errors import SceneError, SettingsError
-from .arrays import to_vector3
+from .arrays import to_float, to_uint, to_vector3
 from .files import atomic_write
 
 import drjit as dr  # noqa: E402
@@ -259,7 +259,7 @@ def triangle_reference(scene, *, samples_per_triangle: int = 1024, seed: int = 0
         local = np.searchsorted(ends, np.arange(start, stop, dtype=np.int64), side="right")  # triangle of each lane
         first, last = int(local[0]), int(local[-1]) + 1
         # --- upload the triangles this launch touches, gather per lane inside Dr.Jit ----------
-        idx = mi.UInt32((local - first).astype(np.uint32))
+        idx = to_uint(local - first)
         v0, v1, v2 = (dr.gather(mi.Vector3f, to_vector3(verts[first:last, c]), idx) for c in range(3))
         nrm = dr.gather(mi.Vector3f, to_vector3(normal[first:last]), idx)
         sampler = _sampler(seed, index, 0x51, lanes)
@@ -372,8 +372,8 @@ def camera_rays(scene, *, spp: int, seed: int = 0, batch: int = BATCH):
         stop = min(count, start + batch)
         pixel = np.arange(start, stop, dtype=np.int64) // spp
         sampler = _sampler(seed, index, 0xC4, stop - start)
-        px = mi.Float((pixel % width + ox).astype(np.float32))
-        py = mi.Float((pixel // width + oy).astype(np.float32))
+        px = to_float(pixel % width + ox)
+        py = to_float(pixel // width + oy)
         jitter = sampler.next_2d()
         pos = mi.Point2f((px + jitter.x) / full_w, (py + jitter.y) / full_h)
         ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(), pos, sampler.next_2d())

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401  (LLVM set-up before mitsuba)
 from ._runtime import choose_variant
-from .arrays import scene_diagonal
+from .arrays import scene_diagonal, to_float, to_uint
 from .errors import SceneError, warn
 from .leaf import LeafError, is_leaf
 
@@ -966,7 +966,7 @@ def _curved_shading_side(mi_scene, shape, verts: np.ndarray, faces: np.ndarray) 
     lift = 0.5 * edges
     origin = tv.mean(axis=1) + n * lift[:, None]
     ray = mi.Ray3f(_points(origin), _points(-n, mi.Vector3f))
-    ray.maxt = mi.Float((2.0 * lift).astype(np.float32))
+    ray.maxt = to_float(2.0 * lift)
     si = mi_scene.ray_intersect(ray)
     mine = np.array((si.is_valid() & (si.shape == mi.ShapePtr(shape))).numpy(), dtype=bool)
     sh = _columns(si.sh_frame.n)
@@ -980,7 +980,7 @@ def _curved_shading_side(mi_scene, shape, verts: np.ndarray, faces: np.ndarray) 
 def _points(a: np.ndarray, kind=None):
     """(N, 3) float array as a Dr.Jit Point3f (or the given 3-vector type)."""
     kind = kind or mi.Point3f
-    return kind(*[mi.Float(np.ascontiguousarray(a[:, i], dtype=np.float32)) for i in range(3)])
+    return kind(*[to_float(a[:, i]) for i in range(3)])
 
 
 def _columns(v) -> np.ndarray:
@@ -1258,9 +1258,9 @@ def _material_interactions(scene: Scene, shape, tris: np.ndarray, owner: np.ndar
     si.p = _points(pts)
     si.n = _points(nrm, mi.Normal3f)
     si.sh_frame = mi.Frame3f(si.n)
-    si.uv = mi.Point2f(mi.Float(uv[:, 0].astype(np.float32)), mi.Float(uv[:, 1].astype(np.float32)))
+    si.uv = mi.Point2f(to_float(uv[:, 0]), to_float(uv[:, 1]))
     si.shape = mi.ShapePtr(shape)
-    si.prim_index = mi.UInt32(scene.tri_face[tris][owner].astype(np.uint32))
+    si.prim_index = to_uint(scene.tri_face[tris][owner])
     si.wi = mi.Vector3f(0, 0, 1)
     return si, seq[:, 2:]
 
@@ -1282,11 +1282,9 @@ def _hemispherical(bsdf, si, owner: np.ndarray, n: int, qmc: np.ndarray, side: f
     r = np.sqrt(qmc[:, 0])
     phi = 2 * np.pi * qmc[:, 1]
     z = np.sqrt(np.maximum(0.0, 1 - qmc[:, 0])) * side
-    si.wi = mi.Vector3f(mi.Float((r * np.cos(phi)).astype(np.float32)),
-                        mi.Float((r * np.sin(phi)).astype(np.float32)), mi.Float(z.astype(np.float32)))
+    si.wi = mi.Vector3f(to_float(r * np.cos(phi)), to_float(r * np.sin(phi)), to_float(z))
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    bs, weight = bsdf.sample(ctx, si, mi.Float(qmc[:, 2].astype(np.float32)),
-                             mi.Point2f(mi.Float(qmc[:, 3].astype(np.float32)), mi.Float(qmc[:, 4].astype(np.float32))))
+    bs, weight = bsdf.sample(ctx, si, to_float(qmc[:, 2]), mi.Point2f(to_float(qmc[:, 3]), to_float(qmc[:, 4])))
     lanes = len(owner)
     weight = np.nan_to_num(_rows(weight, lanes), nan=0.0, posinf=0.0, neginf=0.0)
     cos_out = np.broadcast_to(np.array(mi.Frame3f.cos_theta(bs.wo).numpy(), dtype=np.float64).reshape(-1), (lanes,))
@@ -1319,13 +1317,12 @@ def _lobe_albedos(bsdf, si, qmc: np.ndarray, *, swap: bool = False) -> dict:
     r, phi, z = np.sqrt(a[:, 0]), 2 * np.pi * a[:, 1], np.sqrt(np.maximum(0.0, 1 - a[:, 0]))
     z_out = np.sqrt(1 - 0.99 * b[:, 0])
     r_out, phi_out = np.sqrt(np.maximum(0.0, 1 - z_out * z_out)), 2 * np.pi * b[:, 1]
-    f32 = lambda v: mi.Float(np.ascontiguousarray(v, dtype=np.float32))  # noqa: E731
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     values = {}
     for side in (+1.0, -1.0):
-        si.wi = mi.Vector3f(f32(r * np.cos(phi)), f32(r * np.sin(phi)), f32(z * side))
+        si.wi = mi.Vector3f(to_float(r * np.cos(phi)), to_float(r * np.sin(phi)), to_float(z * side))
         for out in (+1.0, -1.0):
-            wo = mi.Vector3f(f32(r_out * np.cos(phi_out)), f32(r_out * np.sin(phi_out)), f32(z_out * side * out))
+            wo = mi.Vector3f(to_float(r_out * np.cos(phi_out)), to_float(r_out * np.sin(phi_out)), to_float(z_out * side * out))
             value = _rows(bsdf.eval(ctx, si, wo), lanes) * (np.pi / z_out)[:, None]
             values[side, out] = np.nan_to_num(value, nan=-1.0, posinf=2.0, neginf=-1.0)
     return values

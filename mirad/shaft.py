@@ -38,6 +38,8 @@ from . import _runtime  # noqa: F401
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
+from .arrays import to_float  # noqa: E402
+
 #: Link classes stored in ``Links.vclass``.
 PARTIAL, VISIBLE, BLOCKED = 0, 1, 2
 #: A triangle within this fraction of the scene diagonal of the hull counts as touching.
@@ -201,10 +203,9 @@ def prove_blocked(mi_scene, recv_lifted: np.ndarray, src_lifted: np.ndarray, tol
     t = src_lifted[:, j.ravel()].reshape(-1, 3)
     d = t - o
     dist = np.linalg.norm(d, axis=1)
-    f32 = lambda a: mi.Float(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    ray = mi.Ray3f(mi.Point3f(*(f32(o[:, k]) for k in range(3))),
-                   mi.Vector3f(*(f32(d[:, k] / np.maximum(dist, 1e-300)) for k in range(3))))
-    ray.maxt = f32(dist * (1 - 1e-4))
+    ray = mi.Ray3f(mi.Point3f(*(to_float(o[:, k]) for k in range(3))),
+                   mi.Vector3f(*(to_float(d[:, k] / np.maximum(dist, 1e-300)) for k in range(3))))
+    ray.maxt = to_float(dist * (1 - 1e-4))
     si = mi_scene.ray_intersect(ray)
     shape = dr.reinterpret_array(mi.UInt32, si.shape)
     dr.eval(si.t, si.prim_index, shape, si.n, si.p)

@@ -27,7 +27,7 @@ import numpy as np
 from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .nodes import (PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
                     flat_nodes)
-from .arrays import MAX_LANES, shadow_ray_length, to_float, to_uint, to_vector3
+from .arrays import MAX_LANES, shadow_ray_length, to_bool, to_float, to_uint, to_vector3
 from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
@@ -68,10 +68,10 @@ class NodeBuffers:
         child = cluster_children(nodes.kind, nodes.children)
         curve = np.asarray(nodes.curve)
         return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
-                   to_float(nodes.fill), to_float(nodes.area), mi.UInt32(np.asarray(nodes.kind, np.uint32)),
+                   to_float(nodes.fill), to_float(nodes.area), to_uint(nodes.kind),
                    points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
                    (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
-                   (points(nodes.center), to_float(nodes.radius)), mi.Bool(flat_nodes(nodes)),
+                   (points(nodes.center), to_float(nodes.radius)), to_bool(flat_nodes(nodes)),
                    np.asarray(nodes.kind) == VOLUME)
 
 

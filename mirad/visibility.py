@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
-from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_vector3
+from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_uint, to_vector3
 from .formfactor import point_to_triangle_dr
 
 import drjit as dr  # noqa: E402
@@ -210,9 +210,7 @@ def _in_launches(kernel, recv, src, vclass, samples: int) -> LinkWave:
 
 def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     m = len(recv)
-    recv_dr = mi.UInt32(np.ascontiguousarray(recv, dtype=np.uint32))
-    src_dr = mi.UInt32(np.ascontiguousarray(src, dtype=np.uint32))
-    class_dr = mi.UInt32(np.ascontiguousarray(vclass, dtype=np.uint32))
+    recv_dr, src_dr, class_dr = to_uint(recv), to_uint(src), to_uint(vclass)
     lane = dr.arange(mi.UInt32, m * n)
     link = lane // n
     k = lane % n
@@ -320,8 +318,7 @@ def cluster_link_entries(mi_scene, geo: Geometry, clusters, recv, src, *, sample
 def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: int, lanes_out: bool = False):
     """Links receiver element <- cluster: Monte Carlo over point pairs (see cluster.py)."""
     m = len(recv)
-    recv_dr = mi.UInt32(np.ascontiguousarray(recv, dtype=np.uint32))
-    cl_dr = mi.UInt32(np.ascontiguousarray(src - clusters.first, dtype=np.uint32))
+    recv_dr, cl_dr = to_uint(recv), to_uint(src - clusters.first)
     lane = dr.arange(mi.UInt32, m * n)
     link = lane // n
     k = lane % n

@@ -11,7 +11,7 @@ from mirad.oracle import transfer_bounds
 from mirad.settings import make_settings
 from mirad.shaft import BLOCKED, PARTIAL, VISIBLE, ShaftCuller, lift, prove_blocked
 from mirad.solver import Problem
-from mirad.arrays import RAY_OFFSET
+from mirad.arrays import RAY_OFFSET, to_float, to_uint
 from mirad.visibility import evaluate_links
 
 T = mi.ScalarTransform4f
@@ -120,8 +120,8 @@ def test_transfer_bounds_contain_dense_estimates(data):
     for name, v in meshes.items():
         mesh = mi.Mesh(name, 3, 1)
         params = mi.traverse(mesh)
-        params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(np.array([0, 1, 2], np.uint32))
+        params["vertex_positions"] = to_float(v)
+        params["faces"] = to_uint(np.array([0, 1, 2]))
         params.update()
         scene[name] = mesh
     sc = mirad.load_scene(scene)

@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from conftest import F_PARALLEL, F_PERPENDICULAR
+from mirad.arrays import to_float
 from mirad.formfactor import (disc_estimate, parallel_rectangles, perpendicular_rectangles,
                               point_to_polygon, point_to_triangle_dr)
 
@@ -45,7 +46,7 @@ def test_drjit_kernel_matches_numpy_loop_including_clipped_triangles():
     normal = rng.normal(size=(n, 3))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     tri = rng.uniform(-2, 2, (n, 3, 3))  # many cross the receiver's tangent plane
-    vec = lambda a: mi.Vector3f(*(mi.Float(a[:, i].astype(np.float32)) for i in range(3)))  # noqa: E731
+    vec = lambda a: mi.Vector3f(*(to_float(a[:, i]) for i in range(3)))  # noqa: E731
     got = point_to_triangle_dr(vec(x), vec(normal), vec(tri[:, 0]), vec(tri[:, 1]), vec(tri[:, 2])).numpy()
     expected = np.array([point_to_polygon(x[i], normal[i], tri[i]) for i in range(n)])
     np.testing.assert_allclose(got, expected, atol=2e-4)

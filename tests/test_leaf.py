@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import mirad
+from mirad.arrays import to_float
 import mitsuba as mi
 import drjit as dr
 
@@ -49,7 +50,7 @@ def sun_scene(bsdf: dict, *, direction=(0, 0, -1), irradiance=2.0) -> dict:
 def interaction(wi: np.ndarray):
     """SurfaceInteraction3f in the local frame (normal +z) with the (N, 3) incident directions."""
     si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
-    si.wi = mi.Vector3f(*(mi.Float(np.ascontiguousarray(wi[:, k], dtype=np.float32)) for k in range(3)))
+    si.wi = mi.Vector3f(*(to_float(wi[:, k]) for k in range(3)))
     si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
     si.n = mi.Normal3f(0, 0, 1)
     return si
@@ -81,7 +82,7 @@ def test_eval_pdf_match_the_closed_form_on_both_sides():
     n = 4096
     wi, wo = directions(n, 1), directions(n, 2)
     si, ctx = interaction(wi), mi.BSDFContext()
-    vo = mi.Vector3f(*(mi.Float(wo[:, k].astype(np.float32)) for k in range(3)))
+    vo = mi.Vector3f(*(to_float(wo[:, k]) for k in range(3)))
     value, pdf = colour(bsdf.eval(ctx, si, vo), n), np.array(bsdf.pdf(ctx, si, vo).numpy())
     both, both_pdf = bsdf.eval_pdf(ctx, si, vo)
     same = (wi[:, 2] * wo[:, 2] > 0)[:, None]
@@ -110,7 +111,7 @@ def test_sample_weights_pdf_and_albedos():
     wi = directions(n, 4)
     si, ctx = interaction(wi), mi.BSDFContext()
     u = rng.random((n, 3)).astype(np.float32)
-    bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2])))
+    bs, weight = bsdf.sample(ctx, si, to_float(u[:, 0]), mi.Point2f(to_float(u[:, 1]), to_float(u[:, 2])))
     weight = colour(weight, n)
     wo = np.array(bs.wo.numpy()).reshape(3, -1).T
     reflected = wi[:, 2] * wo[:, 2] > 0
@@ -154,7 +155,7 @@ def test_context_selects_one_lobe():
     for flag, component, albedo, side in ((mi.BSDFFlags.DiffuseReflection, 0, RHO, 1),
                                           (mi.BSDFFlags.DiffuseTransmission, 1, TAU, -1)):
         ctx = mi.BSDFContext(mi.TransportMode.Radiance, +flag, component)
-        bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2])))
+        bs, weight = bsdf.sample(ctx, si, to_float(u[:, 0]), mi.Point2f(to_float(u[:, 1]), to_float(u[:, 2])))
         wo = np.array(bs.wo.numpy()).reshape(3, -1).T
         assert np.all(wo[:, 2] * side > 0)
         np.testing.assert_allclose(colour(weight, n), np.broadcast_to(albedo, (n, 3)), rtol=F32)

@@ -15,6 +15,7 @@ import mitsuba as mi
 import drjit as dr
 from conftest import run_cli
 from mirad import far_field, periodic
+from mirad.arrays import to_float
 from mirad.errors import SceneError, SettingsError
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*transmits light")
@@ -142,7 +143,7 @@ def post_scene():
 
 def vec(rows):
     rows = np.asarray(rows, np.float32)
-    return mi.Vector3f(*(mi.Float(rows[:, k]) for k in range(3)))
+    return mi.Vector3f(*(to_float(rows[:, k]) for k in range(3)))
 
 
 def test_a_ray_hits_the_post_on_its_third_wrap(post_scene):
@@ -202,7 +203,7 @@ def test_rays_through_an_empty_box_cross_it_as_often_as_the_closed_form_says(pos
     ends = np.array([[-1.45, 0.0, 0.5], [-1.3, 0.0, 0.5]])     # the post's image spans x in [-1.6, -1.4]
     dd = ends - np.array([[-0.9, 0.0, 0.5]] * 2)
     dist = np.linalg.norm(dd, axis=1)
-    hit = periodic.ray_test(scene.mi_scene, box, o, vec(dd / dist[:, None]), mi.Float(dist.astype(np.float32)))
+    hit = periodic.ray_test(scene.mi_scene, box, o, vec(dd / dist[:, None]), to_float(dist))
     assert hit.numpy().tolist() == [True, False]
 
 

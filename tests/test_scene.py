@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import mirad
+from mirad.arrays import to_float
 import mitsuba as mi
 from mirad.reference import triangle_reference
 
@@ -96,8 +97,8 @@ def test_mirrored_curved_shapes_face_where_mitsuba_says(kind, mirror):
                                                     "emitter": {"type": "area"}}})
     n, c = scene.tri_normal, scene.tri_vertices.mean(axis=1)
     o = c + 0.05 * n
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, i]) for i in range(3)]),
-                   mi.Vector3f(*[mi.Float(-n[:, i]) for i in range(3)]))
+    ray = mi.Ray3f(mi.Point3f(*[to_float(o[:, i]) for i in range(3)]),
+                   mi.Vector3f(*[to_float(-n[:, i]) for i in range(3)]))
     si = scene.mi_scene.ray_intersect(ray)
     sh = np.array(si.sh_frame.n.numpy()).reshape(3, -1).T
     hit = np.array(si.is_valid().numpy(), dtype=bool)
@@ -182,9 +183,9 @@ def test_reflecting_bsdf_albedo_matches_mitsubas_own_directional_albedo(bsdf):
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.sh_frame = mi.Frame3f(mi.Normal3f(0, 0, 1))
     si.n = mi.Normal3f(0, 0, 1)
-    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])))
-    bs, w = b.sample(mi.BSDFContext(mi.TransportMode.Importance), si, mi.Float(u[:, 2]),
-                     mi.Point2f(mi.Float(u[:, 3]), mi.Float(u[:, 4])))
+    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(to_float(u[:, 0]), to_float(u[:, 1])))
+    bs, w = b.sample(mi.BSDFContext(mi.TransportMode.Importance), si, to_float(u[:, 2]),
+                     mi.Point2f(to_float(u[:, 3]), to_float(u[:, 4])))
     up = np.array(mi.Frame3f.cos_theta(bs.wo).numpy()) > 0
     expected = (np.array(w.numpy()).reshape(3, -1)[0] * up).mean()
     assert scene.tri_rho[:, 0].mean() == pytest.approx(expected, rel=0.015)
@@ -221,7 +222,7 @@ def test_bitmap_reflectance_is_the_textures_mean_over_each_triangle(filter_type)
         s_, t_ = np.linalg.solve(m, np.stack([gu - a[0], gv - a[1]]))
         inside = (s_ >= 0) & (t_ >= 0) & (s_ + t_ <= 1)
         si = dr.zeros(mi.SurfaceInteraction3f, int(inside.sum()))
-        si.uv = mi.Point2f(mi.Float(gu[inside]), mi.Float(gv[inside]))
+        si.uv = mi.Point2f(to_float(gu[inside]), to_float(gv[inside]))
         exact = np.array(texture.eval(si).numpy()).reshape(3, -1).mean(axis=1)
         np.testing.assert_allclose(scene.tri_rho[t], exact, rtol=0.01)
 

@@ -5,6 +5,7 @@ import numpy as np
 import mirad
 from conftest import SCENES
 from mirad import shadows as S
+from mirad.arrays import to_bool, to_float, to_uint
 from mirad.solver import TEXTURED
 
 
@@ -95,12 +96,11 @@ def test_shadow_detail_is_shown_by_render_and_kept_by_save(tmp_path):
     sol = mirad.solve(scene, tolerance=0.01, shadow_textures=True, quiet=True)
     leaf = int(sol.detail_leaves[0])
     p, uv, n = _points_on_leaf(sol, leaf, 200, seed=1)
-    f = lambda x: mi.Float(np.ascontiguousarray(x, np.float32))  # noqa: E731
     shading = Shading(sol)
     shape = int(sol.leaf_shape[leaf])
     found_leaf, found_uv, found = shading.locate(
-        mi.Point3f(*(f(p[:, i]) for i in range(3))), mi.Vector3f(*(f(np.full(len(p), n[i])) for i in range(3))),
-        dr.zeros(mi.Bool, len(p)), mi.UInt32(np.full(len(p), shape, np.uint32)), mi.Bool(np.ones(len(p), bool)))
+        mi.Point3f(*(to_float(p[:, i]) for i in range(3))), mi.Vector3f(*(to_float(np.full(len(p), n[i])) for i in range(3))),
+        dr.zeros(mi.Bool, len(p)), to_uint(np.full(len(p), shape)), to_bool(np.ones(len(p), bool)))
     assert np.all(found_leaf.numpy() == leaf)
     detail, textured = shading.detail_radiance(found_leaf, found_uv, found)
     assert np.all(textured.numpy())

@@ -31,6 +31,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 import mirad  # noqa: E402  (sets up LLVM before mitsuba/drjit are imported)
+from mirad.arrays import to_float  # noqa: E402
 from mirad.reference import triangle_reference  # noqa: E402
 from mirad.solution import atomic_write  # noqa: E402
 from mirad.validate import machine  # noqa: E402
@@ -109,11 +110,10 @@ def make_rays(scene, count: int, seed: int):
     dist = np.linalg.norm(d, axis=1)
     dist = np.where(dist > 0, dist, 1.0)
     d /= dist[:, None]
-    f32 = lambda a: mi.Float(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    origin = mi.Point3f(f32(o[:, 0]), f32(o[:, 1]), f32(o[:, 2]))
-    direction = mi.Vector3f(f32(d[:, 0]), f32(d[:, 1]), f32(d[:, 2]))
+    origin = mi.Point3f(to_float(o[:, 0]), to_float(o[:, 1]), to_float(o[:, 2]))
+    direction = mi.Vector3f(to_float(d[:, 0]), to_float(d[:, 1]), to_float(d[:, 2]))
     ray = mi.Ray3f(origin, direction)
-    ray.maxt = f32(0.999 * dist)
+    ray.maxt = to_float(0.999 * dist)
     dr.eval(ray.o, ray.d, ray.maxt)
     dr.sync_thread()
     return ray

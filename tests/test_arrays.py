@@ -1,0 +1,90 @@
+"""numpy -> Dr.Jit conversions (mirad.arrays): arrays that end at an unmapped page.
+
+On the CPU, Dr.Jit maps a contiguous numpy array instead of copying it, and its elementwise
+kernels load whole SIMD packets, reading past the array's last element. An array whose end is
+followed by an unmapped page then faults inside JIT-compiled code (SIGSEGV). The scripts below
+place an array's last element right before a page made unreadable with ``mprotect`` and run an
+elementwise kernel on it: through mirad's converters, which copy into a padded buffer, they
+finish with the right sums; the control hands the same memory to Dr.Jit directly.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+# (count of elements: not a multiple of any SIMD width, so that the last packet is partial)
+GUARDED = textwrap.dedent("""
+    import ctypes, mmap, sys
+    import numpy as np
+    import mirad  # noqa: F401  (sets the variant up)
+    import drjit as dr
+    import mitsuba as mi
+    from mirad.arrays import to_bool, to_float, to_uint, to_vector3
+
+    pages = 64
+    page = mmap.PAGESIZE
+    buf = mmap.mmap(-1, (pages + 1) * page, prot=mmap.PROT_READ | mmap.PROT_WRITE)
+    libc = ctypes.CDLL(None)
+    libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    address = ctypes.addressof(ctypes.c_char.from_buffer(buf))
+
+    def guarded(dtype, count):
+        whole = np.frombuffer(buf, dtype=dtype, count=pages * page // np.dtype(dtype).itemsize)
+        return whole[len(whole) - count:]          # its last element ends where the guard page starts
+
+    count = 65533
+    f, u, b = guarded(np.float32, count), None, None
+    f[:] = 1.5
+    if libc.mprotect(ctypes.c_void_p(address + pages * page), page, 0) != 0:
+        sys.exit(3)
+    how = sys.argv[1]
+    if how == "mapped":
+        x = mi.Float(f)
+    else:
+        x = to_float(f)
+    y = x * 2.0 + 1.0
+    dr.eval(y)
+    total = float(np.asarray(y.numpy(), np.float64).sum())
+    assert abs(total - 4.0 * count) < 1e-3 * count, total
+    if how == "mirad":
+        u = np.frombuffer(buf, dtype=np.uint32, count=pages * page // 4)[-count:]
+        n = to_uint(u) + 1
+        dr.eval(n)
+        assert int(np.asarray(n.numpy(), np.int64).sum()) == count * (1 + int(u[0]))
+        k = to_bool(np.frombuffer(buf, dtype=np.uint8, count=pages * page)[-count:] > 0)
+        dr.eval(~k)
+        v = to_vector3(f[: count - count % 3].reshape(-1, 3))
+        w = dr.norm(v)
+        dr.eval(w)
+    print("done")
+""")
+
+
+def _run(how: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", GUARDED, how], capture_output=True, text=True, timeout=300)
+
+
+def test_converted_arrays_are_never_read_past_their_end():
+    """mirad's converters: the kernel reads no byte past the array (the guard page is untouched)."""
+    out = _run("mirad")
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert out.stdout.strip().endswith("done")
+
+
+def test_the_guard_page_catches_a_read_past_the_end():
+    """The control: the same memory mapped into Dr.Jit as it is faults (so the test above can fail).
+    Only where Dr.Jit maps host memory (the CPU backend); a GPU variant copies it."""
+    import mitsuba as mi
+
+    import mirad  # noqa: F401
+
+    if not mi.variant().startswith("llvm"):
+        pytest.skip("the GPU backend copies numpy arrays to the device")
+    out = _run("mapped")
+    if out.returncode == 0:
+        pytest.skip("this CPU's packets did not reach the guard page (narrow SIMD): nothing to show")
+    assert out.returncode < 0 or out.returncode == 139, (out.returncode, out.stderr[-2000:])
