@@ -250,15 +250,15 @@ def _buffers(state: State) -> NodeBuffers:
 
 
 def _transfers(state: State, recv: np.ndarray, src: np.ndarray, rays_per_point: int, seed: int,
-               samples: bool = False):
+               samples: bool = False, spread: bool = False):
     """``transfer.evaluate`` of links recv <- src (M,) on the state's nodes: in this process,
     or on the Dask workers of ``state.evaluator`` (bitwise the same PointTransfers; the
     direct light and ``buried_fraction`` always run here)."""
     if state.evaluator is not None:
         return state.evaluator.evaluate_transfers(state.nodes, recv, src, rays_per_point=rays_per_point, seed=seed,
-                                                  offset=state.offset, samples=samples)
+                                                  offset=state.offset, samples=samples, spread=spread)
     return evaluate(state.scene.mi_scene, _buffers(state), recv, src, rays_per_point=rays_per_point, seed=seed,
-                    offset=state.offset, periodic=state.periodic, samples=samples)
+                    offset=state.offset, periodic=state.periodic, samples=samples, spread=spread)
 
 
 def evaluate_links(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray) -> Links:
@@ -781,13 +781,15 @@ GATHER_MAX_RAYS = SOURCE_POINTS
 GATHER_SHARE = 0.25
 
 
-def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray, found: list | None = None):
+def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndarray, found: list | None = None,
+                  spread: bool = False):
     """Transfers recv <- src (M,) at the receivers' K points with ``rays`` (M,) shadow rays
     per point: (unoccluded G (M, K), G with the link's visibility (M, K), G with each
     point's own visibility (M, K), seconds in the waves, and the mean squared sampled transfer
     of volume-cluster sources (M, K), transfer.PointTransfers.gv_square). ``found``: a list to
     which the volume clusters' arriving samples are added (``transfer.PointTransfers.samples``,
-    their links counted in recv), or None."""
+    their links counted in recv), or None. ``spread``: each ray aims at a target of its own
+    (``transfer.ray_target``)."""
     out = [np.zeros((len(recv), RECEIVER_POINTS), np.float32) for _ in range(4)]
     seconds = 0.0
     for count in np.unique(rays):
@@ -795,7 +797,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
         for part in _chunks(len(group)):
             idx = group[part]
             t1 = time.perf_counter()
-            pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57, found is not None)
+            pt = _transfers(state, recv[idx], src[idx], int(count), state.settings.seed + 0x7E57, found is not None,
+                            spread)
             seconds += time.perf_counter() - t1
             state.rays += pt.rays
             out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
@@ -833,7 +836,8 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
                     found: list | None = None):
     """``_evaluate_pairs`` of up to GATHER_CHUNK pairs."""
     nodes = state.nodes
-    g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays, found)
+    # (a pair takes its points' mean: their rays may each aim at a target of their own)
+    g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays, found, SPREAD_PAIR_RAYS)
     w = nodes.recv_w[patch].astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
@@ -845,7 +849,7 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     if vol.any():
         # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
         var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
-                                                 ff_unocc[vol], rays[vol], patch[vol])) ** 2
+                                                 ff_unocc[vol], rays[vol], patch[vol], SPREAD_PAIR_RAYS)) ** 2
     spatial = np.zeros(len(patch))
     # (with one ray a point the shadow's quadrature and the rays' noise are one: zero there)
     if (partial & (rays > 1)).any():
@@ -913,6 +917,20 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
         seconds_in_waves += seconds
 
 
+#: Whether the gather's pairs aim each of their rays at a target of their own
+#: (``transfer.ray_target``'s ``spread``): for the same rays, fine Cornell box at 0.1 1.33 -> 1.24 %,
+#: 36-triangle box 0.59 -> 0.52 %. Off: with it on, the README tour's solve (a subprocess of the
+#: test suite) died of a segmentation fault in three of four full runs of the suite (a read at a
+#: page boundary in JIT-compiled code; never alone, nor in 40 runs of the same script), and the
+#: read has not been found. validation/RESULTS.md, the nineteenth session.
+SPREAD_PAIR_RAYS = False
+#: What of a receiver's points' spread about their plane ``shadow_variance`` takes for the rays'
+#: noise: its expected share and two standard deviations of its estimate over K points less the
+#: plane's 3 parameters (a chi-square of K - 3 degrees of freedom: relative deviation
+#: sqrt(2 / (K - 3))). Taken at its mean alone, its chance excesses split leaves for no shadow:
+#: 8 % more of the fine Cornell box's with every ray at a target of its own, whose points' noise
+#: is independent; 5 % more with the shared targets, at the same error.
+SHADOW_NOISE_MARGIN = 1.0 + 2.0 * np.sqrt(2.0 / (RECEIVER_POINTS - 3))
 #: A volume cluster's gathered transfers bring each sampled triangle's own radiosity, not the
 #: cluster's mean (``SampleLog``).
 OWN_RADIOSITY = True
@@ -1014,14 +1032,14 @@ def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray
     point's transfer, g_k (v_k - V), is fitted by a plane over the receiver
     (``linear_fit``): a penumbra that varies linearly over it the rule integrates exactly,
     while an edge between the points leaves a residual. Its variance, less the share the
-    rays' noise explains (g_k^2 v_k (1 - v_k) / (R - 1)), over K points as for K samples.
-    Zero with one ray per point (residual and noise are one there)."""
+    rays' noise explains (g_k^2 v_k (1 - v_k) / (R - 1)) with SHADOW_NOISE_MARGIN, over K points
+    as for K samples. Zero with one ray per point (residual and noise are one there)."""
     ff_unocc = (w * g).sum(axis=1)
     v = np.where(g > 0, gv_point / np.where(g > 0, g, 1.0), 1.0)
     vis = (w * g * v).sum(axis=1) / np.where(ff_unocc > 0, ff_unocc, 1.0)
     _, _, _, rms = linear_fit(nodes, recv, g * (v - vis[:, None]))
     r = rays.astype(np.float64)[:, None]
-    noise = (w * g * g * v * (1 - v) / np.maximum(r - 1, 1)).sum(axis=1)
+    noise = SHADOW_NOISE_MARGIN * (w * g * g * v * (1 - v) / np.maximum(r - 1, 1)).sum(axis=1)
     return np.where(rays > 1, np.maximum(rms * rms - noise, 0.0) / RECEIVER_POINTS, 0.0)
 
 

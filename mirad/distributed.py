@@ -254,14 +254,14 @@ def _links_task(key: _SceneKey, geo_payload, cl_payload, recv, src, vclass, samp
 
 
 def _transfers_task(key: _SceneKey, nodes_payload, recv, src, rays_per_point: int, seed: int, offset: float,
-                    samples: bool):
+                    samples: bool, spread: bool):
     """One batch of hierarchical-core links on a worker: ``transfer.evaluate``'s per-point
     arrays g, gv, gv_point, gv_square (M, K) float32, the ray count and, with ``samples``, the
     volume clusters' arriving samples (links indexed within the batch)."""
     from .transfer import evaluate
 
     pt = evaluate(_worker_scene(key).mi_scene, _node_buffers(nodes_payload), recv, src, rays_per_point=rays_per_point,
-                  seed=seed, offset=offset, samples=samples)
+                  seed=seed, offset=offset, samples=samples, spread=spread)
     return pt.g, pt.gv, pt.gv_point, pt.gv_square, pt.rays, pt.samples
 
 
@@ -453,7 +453,7 @@ class DaskEvaluator:
         return LinkWave(*fields, int(sum(r[1] for r in results)))
 
     def evaluate_transfers(self, nodes, recv: np.ndarray, src: np.ndarray, *, rays_per_point: int, seed: int,
-                           offset: float, samples: bool = False):
+                           offset: float, samples: bool = False, spread: bool = False):
         """Same contract (and bitwise the same results) as ``transfer.evaluate`` on
         ``NodeBuffers.upload(nodes)``: the hierarchical core's links recv <- src (M,).
 
@@ -476,7 +476,7 @@ class DaskEvaluator:
         batches = max(1, min(self.workers * BATCHES_PER_WORKER, -(-m // MIN_BATCH)))
         bounds = np.linspace(0, m, batches + 1).astype(np.int64)
         futures = [self.client.submit(_transfers_task, self.key, chain, recv[a:b], src[a:b], int(rays_per_point),
-                                      int(seed), float(offset), bool(samples), pure=False)
+                                      int(seed), float(offset), bool(samples), bool(spread), pure=False)
                    for a, b in zip(bounds[:-1], bounds[1:])]
         results = self.client.gather(futures)
         self.timing["run"] += time.perf_counter() - t1

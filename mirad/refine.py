@@ -227,7 +227,7 @@ def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.nda
 
 
 def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, unoccluded: np.ndarray,
-                        rays: np.ndarray, recv: np.ndarray | None = None) -> np.ndarray:
+                        rays: np.ndarray, recv: np.ndarray | None = None, spread: bool = False) -> np.ndarray:
     """(M,) standard error of links' Monte Carlo transfers from volume clusters.
 
     w (M, K): the receiver points' weights; mean, square (M, K): the mean over each point's
@@ -238,11 +238,13 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     draws its own, ``transfer.source_point``). Where every ray was blocked (or none was) the
     samples' variance is 0 however few they were: a floor of the unoccluded transfer over the
     ray count stands for the one that might have turned over. ``recv`` (M,): the receiver
-    nodes w is of, where known (``shared_target_weight`` then goes once per receiver)."""
+    nodes w is of, where known (``shared_target_weight`` then goes once per receiver). With
+    ``spread`` (``transfer.ray_target``) every ray has its own target: sum_i w_i^2 / R."""
     f = (w * mean).sum(axis=1)
     pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
     n = RECEIVER_POINTS * rays.astype(np.float64)
-    std = np.sqrt(pooled * shared_target_weight(w, rays, recv))
+    weight = (w * w).sum(axis=1) / rays if spread else shared_target_weight(w, rays, recv)
+    std = np.sqrt(pooled * weight)
     return np.maximum(std, unoccluded / n)
 
 
