@@ -919,11 +919,8 @@ def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_sr
 
 #: Whether the gather's pairs aim each of their rays at a target of their own
 #: (``transfer.ray_target``'s ``spread``): for the same rays, fine Cornell box at 0.1 1.33 -> 1.24 %,
-#: 36-triangle box 0.59 -> 0.52 %. Off: with it on, the README tour's solve (a subprocess of the
-#: test suite) died of a segmentation fault in three of four full runs of the suite (a read at a
-#: page boundary in JIT-compiled code; never alone, nor in 40 runs of the same script), and the
-#: read has not been found. validation/RESULTS.md, the nineteenth session.
-SPREAD_PAIR_RAYS = False
+#: 36-triangle box 0.59 -> 0.52 % (validation/RESULTS.md, the nineteenth and twentieth sessions).
+SPREAD_PAIR_RAYS = True
 #: What of a receiver's points' spread about their plane ``shadow_variance`` takes for the rays'
 #: noise: its expected share and two standard deviations of its estimate over K points less the
 #: plane's 3 parameters (a chi-square of K - 3 degrees of freedom: relative deviation
