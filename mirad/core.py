@@ -1919,6 +1919,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                     moved_node.append(leaves[part[0][away]])
                     moved_src.append(part[1][away])
                     smooth_parts[j] = tuple(a[~away] for a in part)
+            # (the links gathered again as pairs are among the pairs: moved too, they counted twice)
             from_links = np.flatnonzero(np.isin(links.recv, crossed) & ~link_moved & ~on_leaf)
             link_moved[from_links] = True
             moved_node.append(links.recv[from_links].astype(np.int64))
@@ -1960,8 +1961,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     sampled = (np.zeros(0, np.int64),) * 2 + (np.zeros(0),)
     if log is not None:
         # a volume cluster's pairs bring each sampled triangle's radiosity (from the same rays;
-        # those kept on a split leaf too: at the cluster's mean, a table top that a lamp inside
-        # a cluster lights read 15 % dark on a split triangle, 8 % on the furnished room's)
+        # those kept on a split leaf too, which brought the cluster's mean before: the furnished
+        # room at 0.15 1.019 -> 1.007 % over four seeds)
         by_triangle = np.flatnonzero((nodes.kind[from_src] == VOLUME) & (node_ff > 0))
         by_mean[by_triangle] = False
         sampled = log.split(state, np.concatenate([pair_row, stay_row])[by_triangle], on_node[by_triangle],
