@@ -88,3 +88,42 @@ def test_the_guard_page_catches_a_read_past_the_end():
     if out.returncode == 0:
         pytest.skip("this CPU's packets did not reach the guard page (narrow SIMD): nothing to show")
     assert out.returncode < 0 or out.returncode == 139, (out.returncode, out.stderr[-2000:])
+
+
+def test_mirad_hands_numpy_to_drjit_only_through_its_converters():
+    """The class of the fault above: no module of mirad builds a Dr.Jit array straight from a numpy
+    expression (``mi.Float(np....)``, ``mi.UInt32(a.astype(...))``), which would map memory that
+    kernels read past; ``arrays.dr_buffer`` is the one way in (``to_float``, ``to_uint``,
+    ``to_bool`` and the vectors made of them)."""
+    import ast
+    from pathlib import Path
+
+    import mirad
+
+    types = {"Float", "Float64", "UInt32", "Int32", "UInt64", "Int64", "Bool", "Vector3f", "Point3f", "Point2f",
+             "Normal3f", "Color3f", "TensorXf"}
+    found = []
+    for path in sorted(Path(mirad.__file__).parent.glob("*.py")):
+        if path.name == "arrays.py":
+            continue
+        source = path.read_text()
+        for node in ast.walk(ast.parse(source)):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and isinstance(node.func.value, ast.Name) and node.func.value.id in ("mi", "dr")
+                    and node.func.attr in types):
+                continue
+            converted = ("to_float", "to_uint", "to_bool", "to_vector3", "to_point3")
+
+            def raw(arg) -> bool:        # (an argument made by a converter is safe)
+                if isinstance(arg, ast.Starred):
+                    arg = arg.value
+                if isinstance(arg, ast.GeneratorExp):
+                    arg = arg.elt
+                if isinstance(arg, ast.Call) and isinstance(arg.func, ast.Name) and arg.func.id in converted:
+                    return False
+                text = ast.get_source_segment(source, arg) or ""
+                return "np." in text or ".astype(" in text or "ascontiguousarray" in text
+
+            if any(raw(a) for a in node.args):
+                found.append(f"{path.name}:{node.lineno}: {ast.get_source_segment(source, node)}")
+    assert not found, "\n".join(found)
