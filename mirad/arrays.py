@@ -13,7 +13,8 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 __all__ = ["MAX_LANES", "RAY_OFFSET", "LEAF_CORNER_UV", "DR_PAD", "shadow_ray_length", "row_norm", "dr_buffer",
-           "to_float", "to_uint", "to_bool", "to_vector3", "to_point3", "scene_diagonal", "group_sum", "group_mean", "channel_max"]
+           "to_float", "to_uint", "to_bool", "to_vector3", "to_point3", "scene_diagonal", "group_sum", "group_mean",
+           "channel_max"]
 
 #: Largest number of lanes in one Dr.Jit launch (bounds the memory of a wave).
 MAX_LANES = 1 << 22
@@ -58,7 +59,7 @@ def to_uint(a) -> "mi.UInt32":
 
 def to_bool(a) -> "mi.Bool":
     """mi.Bool of an array of truth values (flattened)."""
-    return mi.Bool(dr_buffer(np.asarray(a, bool), bool))
+    return mi.Bool(dr_buffer(a, bool))
 
 
 def to_vector3(a) -> "mi.Vector3f":

@@ -1887,7 +1887,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     kept = []
     link_moved = np.zeros(len(links), bool)     # links on leaves the loop below moved to their children
     for _ in range(MAX_SHADOW_SPLITS):
-        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts = pairs_now[:7]
+        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = pairs_now
         share = output_share(state, pair_node)
         allowed = gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
         over = (g_shadow * share > allowed) & (nodes.kind[pair_node] == TRIANGLE) & \
@@ -1927,7 +1927,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         on_split = np.isin(pair_node, ids)
         rest = on_split & ~over
         stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest], pair_rays[rest],
-                     pairs_now[7][rest]))
+                     pair_row[rest]))
         kept.append([a[~on_split] for a in pairs_now])
         parent_node = np.concatenate([pair_node[over]] + moved_node)
         kids = nodes.children[parent_node]

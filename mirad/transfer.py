@@ -366,7 +366,7 @@ def ray_target(i, j, rays_per_point: int, key=0, spread: bool = False):
     a target of its own, the points' rays interleaved over the K R targets (point i at i, i + K,
     ...), so that each point's rays cover the source as a stratified set: 0.5 times that variance."""
     if spread:
-        return (key + i + RECEIVER_POINTS * j) % (RECEIVER_POINTS * rays_per_point)
+        return (key + i + RECEIVER_POINTS * j) % pattern_size(rays_per_point, spread)
     pattern = pattern_size(rays_per_point)
     step = 2 * (rays_per_point // 2) + 1 if rays_per_point < pattern else 1
     return (key + i * 7 + j * step) % pattern
