@@ -567,6 +567,34 @@ def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.
     return out
 
 
+#: Rays from each source with which ``escaping_share`` measures the share of its light that
+#: leaves the scene.
+ESCAPE_RAYS = 64
+
+
+def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offset: float) -> tuple[np.ndarray, int]:
+    """(S,) the share of the light of planar source nodes src (S,) that leaves the scene,
+    and the rays traced: of ESCAPE_RAYS cosine-distributed rays from stratified points of
+    each (``source_point``), those that meet nothing."""
+    m = len(src)
+    out = np.zeros(m)
+    per = max(1, MAX_LANES // ESCAPE_RAYS)
+    with exact_arithmetic():
+        for a in range(0, m, per):
+            b = min(m, a + per)
+            lane = dr.arange(mi.UInt32, (b - a) * ESCAPE_RAYS)
+            pair, t = lane // ESCAPE_RAYS, lane % ESCAPE_RAYS
+            s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
+            key = hash_u32(s * 0x9E3779B9 + mi.UInt32(seed))
+            y, ny, _, _ = source_point(buf, s, t, ESCAPE_RAYS, key)
+            # (the directions' set in another order than the points': each point its own)
+            u, v = shifted_hammersley((t * 37 + 11) % ESCAPE_RAYS, ESCAPE_RAYS, hash_u32(key ^ 0x5BD1E995))
+            d = mi.Frame3f(ny).to_world(mi.warp.square_to_cosine_hemisphere(mi.Point2f(u, v)))
+            hit = np.asarray(mi_scene.ray_test(mi.Ray3f(y + ny * offset, d)).numpy(), bool)
+            out[a:b] = 1.0 - hit.reshape(b - a, ESCAPE_RAYS).mean(axis=1)
+    return out, m * ESCAPE_RAYS
+
+
 def _meets_back(mi_scene, p, w, d, offset: float):
     """mi.Bool: rays from points p (normals d, lifted ``offset`` along them) in directions w
     whose first hit is the back of a one-sided surface."""
