@@ -575,7 +575,8 @@ ESCAPE_RAYS = 64
 def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offset: float) -> tuple[np.ndarray, int]:
     """(S,) the share of the light of planar source nodes src (S,) that leaves the scene,
     and the rays traced: of ESCAPE_RAYS cosine-distributed rays from stratified points of
-    each (``source_point``), those that meet nothing."""
+    each (``source_point``), those that meet nothing. (A periodic scene's rays are not
+    wrapped: what leaves its pattern box sideways counts as leaving, the larger share.)"""
     m = len(src)
     out = np.zeros(m)
     per = max(1, MAX_LANES // ESCAPE_RAYS)
