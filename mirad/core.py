@@ -86,6 +86,7 @@ class State:
     surface: Surface
     nodes: Nodes
     root: int
+    patch_tri: np.ndarray          # (P,) the input triangle of every patch (``Scene.patch_tri``, built once)
     patch_rho: np.ndarray          # (P, C) reflectance of every patch
     patch_emission: np.ndarray     # (P, C) emitted radiosity, W/m^2
     total_area: float              # m^2, all patches
@@ -162,7 +163,8 @@ def build(scene: Scene, settings: Settings) -> State:
     counted = counted_patches(scene, settings)
     tol = settings.tolerance
     state = State(scene=scene, settings=settings, channels=channels, surface=surf, nodes=nodes, root=root,
-                  patch_rho=scene.patch_rho[:, :channels], patch_emission=scene.patch_emission[:, :channels],
+                  patch_tri=scene.patch_tri, patch_rho=scene.patch_rho[:, :channels],
+                  patch_emission=scene.patch_emission[:, :channels],
                   total_area=total, counted=counted,
                   counted_area=total if counted.all() else float(nodes.area[: len(surf.verts)][counted].sum()),
                   order=order,
@@ -454,7 +456,7 @@ def direct(state: State, ids: np.ndarray, samples: int) -> None:
 
     t = time.perf_counter()
     nodes = state.nodes
-    tri = scene.patch_tri[nodes.patch[ids]]
+    tri = state.patch_tri[nodes.patch[ids]]
     curve = (scene.curve_center[tri], scene.curve_axis[tri], scene.curve_radius[tri])
     h, err, spread, rays = direct_irradiance(scene, nodes.poly[ids, :3], nodes.normal[ids], curve, samples=samples,
                                              seed=state.settings.seed + samples, keys=ids, with_error=True,
@@ -1295,7 +1297,7 @@ def output_share(state: State, ids: np.ndarray) -> np.ndarray:
     output is per input triangle, the mean over its leaves, so independent errors of the
     leaves of one triangle weigh by that share in its variance."""
     nodes = state.nodes
-    return nodes.area[ids] / np.maximum(state.scene.tri_area[state.scene.patch_tri[nodes.patch[ids]]], 1e-300)
+    return nodes.area[ids] / np.maximum(state.scene.tri_area[state.patch_tri[nodes.patch[ids]]], 1e-300)
 
 
 #: Send sources' radiosity gradients (``linear_sources``) with every planar transfer of the
@@ -1406,7 +1408,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     u, v = np.einsum("pkc,pc->pk", d, t1[own_s]), np.einsum("pkc,pc->pk", d, t2[own_s])
     design = np.stack([np.ones_like(u), u, v], axis=2)        # (P, K, 3)
     weighted_design = wts[:, :, None] * design                 # (P, K, 3)
-    per_point = np.einsum("pki,pkj->pij", weighted_design, design).reshape(-1, 9)
+    design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))     # (P, 3, K)
+    per_point = np.matmul(design_t, design).reshape(-1, 9)     # (a batched product: einsum's is 2-3x slower)
     gram = (to_source @ per_point).reshape(-1, 3, 3)
     regular = np.abs(np.linalg.det(gram)) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
     inverse = np.zeros_like(gram)
@@ -1452,7 +1455,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
 
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
     design_sum = weighted_design.sum(axis=1)                   # (P, 3)
-    design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
     inv_seen = 1.0 / np.maximum(seen, 1e-9)
     rho_fit = rho[fit_pos]                                     # (P, C)
@@ -2449,7 +2451,7 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
         "periodic": periodic_stats(state),
         # the shapes the estimate is over (Settings.error_shapes), None: all
         "error_shapes": None if state.counted.all() else
-        sorted({str(scene.shape_ids[k]) for k in np.unique(scene.tri_shape[scene.patch_tri[state.counted]])}),
+        sorted({str(scene.shape_ids[k]) for k in np.unique(scene.tri_shape[state.patch_tri[state.counted]])}),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]
