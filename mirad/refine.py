@@ -448,6 +448,6 @@ def refinement_threshold(errors: np.ndarray, budget: float) -> float:
     if k >= len(e):
         return float(e[-1]) if len(e) else np.inf
     # (errors that differ by float rounding alone fall on one side: many leaves share one
-    # error floor, a sunlit leaf's sun over its points, and a threshold at that floor split
+    # error floor (the sky over its samples where each sees all of it), and a threshold at that floor split
     # them by their last bits, an RGB solve one way and the same channels as bands another)
     return float(e[k - 1]) * (1.0 + SAME_ERROR) if k > 0 else float(e[0]) * 0.999
