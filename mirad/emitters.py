@@ -117,11 +117,11 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     Returns (H, rays), or with ``with_error`` (H, standard error of H (n, C), rays): the
     stratified points' collapsed-strata estimate (``stratified_error``; at most the i.i.d. one
     below, which bounds a stratified mean's variance and is exactly zero where every point
-    agrees, as at a probe's tiny triangle), and under a sky at least
-    what the sky would bring unoccluded over ``samples`` (a feature smaller than one stratum, or
-    a thin band of sky, may be missed by every sample). With ``with_spread`` also, after it, the points' i.i.d. standard error (their
-    sample standard deviation over sqrt(samples)): how much the light varies over the triangle,
-    which decides where a point or spot light's field needs smaller triangles.
+    agrees, as at a probe's tiny triangle), and under a sky at least what the sky would bring
+    unoccluded over ``samples`` (a feature smaller than one stratum, or a thin band of sky, may be
+    missed by every sample). With ``with_spread`` also, after it, the points' i.i.d. standard
+    error (their sample standard deviation over sqrt(samples)): how much the light varies over
+    the triangle, which decides where a point or spot light's field needs smaller triangles.
     ``periodic``: a ``periodic.PeriodicBox`` whose sides the shadow rays wrap around, or None.
     """
     n = len(verts)
