@@ -109,7 +109,7 @@ def sky_sample(emitter, si, nn, k, n: int, key, up):
 
 def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, samples: int,
                       seed: int, keys: np.ndarray, with_error: bool = False, periodic=None,
-                      with_spread: bool = False):
+                      with_spread: bool = False, with_delta_spread: bool = False):
     """Mean direct irradiance (n, C), W/m^2, over triangles verts (n, 3, 3): C = 3 (RGB), or the
     bands of a band scene (``scene.light_band_scale`` (E, C): each emitter's RGB mean times its
     factor in each band).
@@ -123,6 +123,9 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     error (their sample standard deviation over sqrt(samples)): how much the light varies over
     the triangle, which decides where a point or spot light's field needs smaller triangles.
     ``periodic``: a ``periodic.PeriodicBox`` whose sides the shadow rays wrap around, or None.
+    With ``with_delta_spread`` (and ``with_spread``) also, after the spread, the same for the
+    point, spot and directional lights' part of H alone (n, C): how much their light varies over
+    the triangle, without the sky's noise of drawn directions.
     """
     n = len(verts)
     bands = getattr(scene, "light_band_scale", None)
@@ -130,16 +133,20 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     out = np.zeros((n, channels))
     err = np.zeros((n, channels))
     spread = np.zeros((n, channels))
+    delta_spread = np.zeros((n, channels))
     rays = 0
     per_launch = max(1, MAX_LANES // samples)
     for start in range(0, n, per_launch):
         stop = min(n, start + per_launch)
-        h, e, f, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
-                                    [c[start:stop] for c in curve], samples, seed, keys[start:stop], periodic)
+        h, e, f, d, r = _direct_kernel(scene, verts[start:stop], normals[start:stop],
+                                       [c[start:stop] for c in curve], samples, seed, keys[start:stop], periodic)
         out[start:stop] = h
         err[start:stop] = e
         spread[start:stop] = f
+        delta_spread[start:stop] = d
         rays += r
+    if with_delta_spread:
+        return out, err, spread, delta_spread, rays
     if with_spread:
         return out, err, spread, rays
     return (out, err, rays) if with_error else (out, rays)
@@ -178,9 +185,11 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
     if bands is None:
         lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
         open_sum = dr.zeros(mi.Color3f, m * n)    # the skies' part of it, were nothing in the way
+        delta_sum = dr.zeros(mi.Color3f, m * n)   # the point, spot and directional lights' part of it
     else:                                         # per band: sum over emitters of factor x RGB mean
         lane_sum = [dr.zeros(mi.Float, m * n) for _ in range(channels)]
         open_sum = [dr.zeros(mi.Float, m * n) for _ in range(channels)]
+        delta_sum = [dr.zeros(mi.Float, m * n) for _ in range(channels)]
 
     def add(total, e_i: int, value):
         """total plus emitter e_i's contribution value (mi.Color3f): in RGB, or per band
@@ -215,11 +224,17 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         blocked = _blocked(scene.mi_scene, ray, active, periodic)
         w = dr.select(active & ~blocked, cos, 0.0)
         lane_sum = add(lane_sum, e_i, spec * w)
+        delta_sum = add(delta_sum, e_i, spec * w)
         traced += count_true(active)
-    dr.eval(lane_sum, open_sum)
+    dr.eval(lane_sum, open_sum, delta_sum)
     mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(channels)], 1)
     square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(channels)], 1)
     spread = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    # (the point, spot and directional lights' part alone: its points differ by where they are,
+    # a sky's also by the directions each drew)
+    delta_mean = np.stack([dr.block_sum(delta_sum[c], n).numpy() / n for c in range(channels)], 1)
+    delta_square = np.stack([dr.block_sum(dr.square(delta_sum[c]), n).numpy() / n for c in range(channels)], 1)
+    delta_spread = np.sqrt(np.maximum(delta_square - delta_mean * delta_mean, 0.0) / max(n - 1, 1))
     stderr = np.minimum(stratified_error(lane_sum, lane, k, n, channels), spread)
     if any(is_sky(e) for e in scene.light_emitters):
         # samples that all agree (a sky seen whole, or hidden whole) may have missed an occluder
@@ -234,7 +249,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         open_mean = np.stack([dr.block_sum(open_sum[c], n).numpy() / n for c in range(channels)], 1)
         stderr = np.maximum(stderr, open_mean / n)
         spread = np.maximum(spread, open_mean / n)
-    return mean, stderr, spread, traced
+    return mean, stderr, spread, delta_spread, traced
 
 
 def stratified_error(values, lane, k, n: int, channels: int) -> np.ndarray:

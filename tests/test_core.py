@@ -1463,3 +1463,35 @@ def test_a_pairs_rays_each_aim_at_a_target_of_their_own():
     assert np.all(np.abs(spread.mean(axis=0) - shared.mean(axis=0))[partly] <= 4 * error[partly])
     ratio = spread.std(axis=0)[partly] / shared.std(axis=0)[partly]
     assert np.median(ratio) < 0.7, np.quantile(ratio, [0.1, 0.5, 0.9])
+
+
+def test_a_leaf_under_a_sunlit_leaf_gets_the_light_of_its_shadowed_part(tmp_path, monkeypatch):
+    """Two leaves 3 cm apart in the sun (elevation 50 degrees): the upper one's shadow falls on
+    the lower one, and the upper leaf's underside faces the lower one's shadowed part most. A
+    source that sends its mean radiosity sends that part's light as if it were lit: the
+    underside read +12 % against the path tracer (2^20 paths) at tolerance 0.03. The direct
+    light's variation over a source leaf (``core.own_deviation``) is now in refinement's source
+    term (``core.OWN_SOURCE_DEVIATION``), which splits the lower leaf where its shadow matters:
+    within 2 % (measured +0.2 %)."""
+    import trimesh
+
+    from mirad.reference import triangle_reference
+
+    corners = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.03, 0.09, 0.0]])
+    for name, height in (("lower", 0.0), ("upper", 0.03)):
+        trimesh.Trimesh(corners + [0.0, 0.0, height], [[0, 1, 2]], process=False).export(tmp_path / f"{name}.ply")
+    shapes = "".join(f'<shape type="ply" id="{name}"><string name="filename" value="{name}.ply"/>'
+                     f'<boolean name="face_normals" value="true"/><ref id="leaf"/></shape>' for name in ("lower", "upper"))
+    (tmp_path / "scene.xml").write_text(
+        '<scene version="3.0.0"><integrator type="path"/>'
+        '<bsdf type="leaf" id="leaf"><rgb name="reflectance" value="0.3"/><rgb name="transmittance" value="0"/></bsdf>'
+        '<emitter type="directional"><vector name="direction" value="-0.454519478, 0.454519478, -0.766044443"/>'
+        f'<rgb name="irradiance" value="600"/></emitter>{shapes}</scene>')
+    scene = mirad.load_scene(tmp_path / "scene.xml")
+    upper = np.flatnonzero(np.asarray(scene.shape_ids)[scene.tri_shape] == "upper")
+    ref = triangle_reference(scene, samples_per_triangle=1 << 20, seed=1, triangles=upper, side="back").radiosity
+    sol = mirad.solve(scene, tolerance=0.03, seed=0, error_shapes="upper", **HIER)
+    assert abs(sol.back_radiosity[upper, 0] / ref[:, 0] - 1.0).max() < 0.02, (sol.back_radiosity[upper], ref)
+    monkeypatch.setattr(core, "OWN_SOURCE_DEVIATION", False)
+    before = mirad.solve(scene, tolerance=0.03, seed=0, error_shapes="upper", **HIER)
+    assert (before.back_radiosity[upper, 0] / ref[:, 0] - 1.0).min() > 0.08
