@@ -123,9 +123,9 @@ def direct_irradiance(scene, verts: np.ndarray, normals: np.ndarray, curve, *, s
     error (their sample standard deviation over sqrt(samples)): how much the light varies over
     the triangle, which decides where a point or spot light's field needs smaller triangles.
     ``periodic``: a ``periodic.PeriodicBox`` whose sides the shadow rays wrap around, or None.
-    With ``with_delta_spread`` (and ``with_spread``) also, after the spread, the same for the
-    point, spot and directional lights' part of H alone (n, C): how much their light varies over
-    the triangle, without the sky's noise of drawn directions.
+    With ``with_delta_spread``, (H, error, spread, the same spread of the point, spot and
+    directional lights' part of H alone (n, C), rays): how much their light varies over the
+    triangle, without a sky's noise of drawn directions.
     """
     n = len(verts)
     bands = getattr(scene, "light_band_scale", None)

@@ -36,9 +36,9 @@ triangles are gathered again, so the error travels only in the light the cluster
 amplified by interreflection; the face clusters' sampling errors add in quadrature over
 receivers, see ``face_mean_errors``), and dev_s is the mean |B_leaf - B_s|
 over the source's leaves plus how far each leaf's own radiosity varies over it from its
-point, spot, sun and sky light (``core.own_deviation``: a leaf's own shadow on the leaf
-below it, which that leaf's underside faces most; core.OWN_SOURCE_DEVIATION), so a sunlit
-source splits where its shadows matter (the link carries the source's mean; the kernel's relative change
+point, spot and sun light (``core.own_deviation``, ``core.OWN_SOURCE_DEVIATION``: a leaf's
+shadow on the leaf below it, which its own underside faces most), so a sunlit source splits
+where its shadows matter (the link carries the source's mean; the kernel's relative change
 across the source, at most its size over its distance, turns that into a transfer error). A volume-cluster source has no exact
 transfer: its term is A_r B_max,s F_bound (the bounding sphere's form factor and
 the brightest leaf below, Smits-Arvo-Greenberg), so it opens wherever it matters; a
