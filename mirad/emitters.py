@@ -227,14 +227,10 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         delta_sum = add(delta_sum, e_i, spec * w)
         traced += count_true(active)
     dr.eval(lane_sum, open_sum, delta_sum)
-    mean = np.stack([dr.block_sum(lane_sum[c], n).numpy() / n for c in range(channels)], 1)
-    square = np.stack([dr.block_sum(dr.square(lane_sum[c]), n).numpy() / n for c in range(channels)], 1)
-    spread = np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
+    mean, spread = _points_mean_and_spread(lane_sum, n, channels)
     # (the point, spot and directional lights' part alone: its points differ by where they are,
     # a sky's also by the directions each drew)
-    delta_mean = np.stack([dr.block_sum(delta_sum[c], n).numpy() / n for c in range(channels)], 1)
-    delta_square = np.stack([dr.block_sum(dr.square(delta_sum[c]), n).numpy() / n for c in range(channels)], 1)
-    delta_spread = np.sqrt(np.maximum(delta_square - delta_mean * delta_mean, 0.0) / max(n - 1, 1))
+    _, delta_spread = _points_mean_and_spread(delta_sum, n, channels)
     stderr = np.minimum(stratified_error(lane_sum, lane, k, n, channels), spread)
     if any(is_sky(e) for e in scene.light_emitters):
         # samples that all agree (a sky seen whole, or hidden whole) may have missed an occluder
@@ -246,10 +242,24 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         # the leaf, where a stratum holds a fleck of light it misses only if the fleck is smaller
         # than the stratum; a sky's thin band of gaps crosses many strata and is missed by all
         # (a band of 8 % of a leaf's sky through 16 samples: one leaf in four)
-        open_mean = np.stack([dr.block_sum(open_sum[c], n).numpy() / n for c in range(channels)], 1)
+        open_mean = _points_mean(open_sum, n, channels)
         stderr = np.maximum(stderr, open_mean / n)
         spread = np.maximum(spread, open_mean / n)
     return mean, stderr, spread, delta_spread, traced
+
+
+def _points_mean(values, n: int, channels: int) -> np.ndarray:
+    """(m, C): the mean over each triangle's n points of per-point values (C channels of m n lanes)."""
+    return np.stack([dr.block_sum(values[c], n).numpy() / n for c in range(channels)], 1)
+
+
+def _points_mean_and_spread(values, n: int, channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """(m, C) each: the mean over each triangle's n points of per-point values (as
+    ``_points_mean``) and its i.i.d. standard error (the points' sample standard deviation over
+    sqrt(n))."""
+    mean = _points_mean(values, n, channels)
+    square = _points_mean([dr.square(values[c]) for c in range(channels)], n, channels)
+    return mean, np.sqrt(np.maximum(square - mean * mean, 0.0) / max(n - 1, 1))
 
 
 def stratified_error(values, lane, k, n: int, channels: int) -> np.ndarray:
