@@ -379,7 +379,7 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         changed = True
         # --- split what must split: triangle leaves get children first ------------------
         need = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
-        _split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
+        split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
         # --- children links ----------------------------------------------------------------
         s_idx = np.flatnonzero(dec.split_src)
         kids = nodes.children[part.src[s_idx]]
@@ -409,7 +409,7 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
     return changed, capped
 
 
-def _split_leaves(state: State, ids: np.ndarray) -> None:
+def split_leaves(state: State, ids: np.ndarray) -> None:
     """Split triangle leaves ids (nodes.split_triangles) and give the children their
     per-node state: direct-light slots, and buried shares where the parent had any
     (children of a triangle none of whose points was buried are not either, to the
@@ -634,7 +634,7 @@ def split_direct(state: State, leaves: np.ndarray, eps: float) -> bool:
     # stratified points over a whole canopy)
     stuck = leaves[(direct_power_errors(state, leaves) > eps) & field_leaves(state, leaves)
                    & (state.direct_samples[leaves] >= SPLIT_DIRECT_SAMPLES)]
-    _split_leaves(state, stuck)
+    split_leaves(state, stuck)
     return len(stuck) > 0
 
 
@@ -1956,7 +1956,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             break
         ids = np.unique(pair_node[over])
         n_before = len(nodes)
-        _split_leaves(state, ids)
+        split_leaves(state, ids)
         direct_of_new_leaves(state)
         resample_split_direct(state, np.arange(n_before, len(nodes)), direct_budget)
         h_node = np.concatenate([h_node, h_node[nodes.parent[n_before:]]])
