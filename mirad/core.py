@@ -77,7 +77,8 @@ SOURCE_DEVIATION = "measured"
 OWN_SOURCE_DEVIATION = True
 #: Relative residual of a refinement pass's solve, as a share of the error tolerance.
 PASS_SOLVE_SHARE = 0.01
-#: Points measuring the buried share of a triangle node that is partly buried.
+#: Points measuring the buried share of an input triangle that is partly buried (a triangle
+#: split from it: its share of them, ``_measure_buried``).
 BURIED_POINTS = 1024
 #: Bytes a link costs at the peak of a solve (its arrays, the sparse matrix, wave temporaries).
 LINK_PEAK_BYTES = 120
@@ -425,7 +426,8 @@ def split_leaves(state: State, ids: np.ndarray) -> None:
 
 def _measure_buried(state: State, ids: np.ndarray) -> None:
     """Buried share of triangle nodes ids (transfer.buried_fraction): from their source
-    points, then, where some but not all of those are buried, from BURIED_POINTS points.
+    points, then, where some but not all of those are buried, from BURIED_POINTS points over
+    the node's input triangle (a split node: its share of them, at least SOURCE_POINTS).
 
     A node sends its power over its visible area, so an error d in its buried share b is an
     error d / (1 - b) in the radiosity it sends: SOURCE_POINTS points (d up to 1/16) are
