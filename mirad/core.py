@@ -445,10 +445,8 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
         # (a split triangle's node keeps its input triangle's density of points: the output is
         # per input triangle, where its leaves' shares weigh by their area, so their errors
         # together are those of one share measured with BURIED_POINTS over the whole triangle)
-        share_of_tri = nodes.area[partial] / np.maximum(state.scene.tri_area[state.patch_tri[nodes.patch[partial]]],
-                                                         1e-300)
-        counts = np.clip(2 ** np.ceil(np.log2(np.maximum(BURIED_POINTS * share_of_tri, 1.0))), SOURCE_POINTS,
-                         BURIED_POINTS).astype(np.int64)
+        wanted = np.maximum(BURIED_POINTS * output_share(state, partial), 1.0)
+        counts = np.clip(2 ** np.ceil(np.log2(wanted)), SOURCE_POINTS, BURIED_POINTS).astype(np.int64)
         for count in np.unique(counts):
             group = partial[counts == count]
             state.buried[group] = buried_share(mi_scene, _buffers(state), group, int(count), state.settings.seed,

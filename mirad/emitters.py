@@ -182,6 +182,8 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
     offset = RAY_OFFSET * scene.diagonal
     bands = getattr(scene, "light_band_scale", None)
     channels = 3 if bands is None else bands.shape[1]
+    # (without a sky every light is a point, spot or directional one: their part is the whole)
+    with_sky = any(is_sky(e) for e in scene.light_emitters)
     if bands is None:
         lane_sum = dr.zeros(mi.Color3f, m * n)    # every emitter's contribution at each point
         open_sum = dr.zeros(mi.Color3f, m * n)    # the skies' part of it, were nothing in the way
@@ -224,15 +226,16 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
         blocked = _blocked(scene.mi_scene, ray, active, periodic)
         w = dr.select(active & ~blocked, cos, 0.0)
         lane_sum = add(lane_sum, e_i, spec * w)
-        delta_sum = add(delta_sum, e_i, spec * w)
+        if with_sky:
+            delta_sum = add(delta_sum, e_i, spec * w)
         traced += count_true(active)
-    dr.eval(lane_sum, open_sum, delta_sum)
+    dr.eval(lane_sum, open_sum, *((delta_sum,) if with_sky else ()))
     mean, spread = _points_mean_and_spread(lane_sum, n, channels)
     # (the point, spot and directional lights' part alone: its points differ by where they are,
     # a sky's also by the directions each drew)
-    _, delta_spread = _points_mean_and_spread(delta_sum, n, channels)
+    delta_spread = _points_mean_and_spread(delta_sum, n, channels)[1] if with_sky else spread
     stderr = np.minimum(stratified_error(lane_sum, lane, k, n, channels), spread)
-    if any(is_sky(e) for e in scene.light_emitters):
+    if with_sky:
         # samples that all agree (a sky seen whole, or hidden whole) may have missed an occluder
         # or a gap smaller than one stratum: at least one of n samples could have turned over,
         # and one that turns over brings what it would bring unoccluded. (Taken from the light
