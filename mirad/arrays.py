@@ -28,6 +28,12 @@ LEAF_CORNER_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 DR_PAD = 64
 
 
+#: Bytes a buffer handed to Dr.Jit starts on (``dr_buffer``): always the same alignment, so that
+#: a frozen wave (``transfer.FREEZE_WAVES``) finds its inputs as it recorded them (an input
+#: mapped at another alignment is recorded anew).
+DR_ALIGN = 64
+
+
 def dr_buffer(a, dtype) -> np.ndarray:
     """(N,) ``a`` flattened and cast to ``dtype``, in a fresh buffer that stays readable DR_PAD
     elements past its end (zeros), for a Dr.Jit array to be made of.
@@ -42,7 +48,10 @@ def dr_buffer(a, dtype) -> np.ndarray:
     masked and were never the problem. Every numpy -> Dr.Jit conversion in mirad goes
     through here (``to_float``, ``to_uint``, ``to_bool`` and the vectors made of them)."""
     flat = np.ravel(np.asarray(a))
-    out = np.zeros(len(flat) + DR_PAD, dtype)
+    itemsize = np.dtype(dtype).itemsize
+    room = np.zeros((len(flat) + DR_PAD) * itemsize + DR_ALIGN, np.uint8)
+    start = -room.ctypes.data % DR_ALIGN
+    out = room[start:start + (len(flat) + DR_PAD) * itemsize].view(dtype)
     out[:len(flat)] = flat
     return out[:len(flat)]
 

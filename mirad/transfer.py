@@ -19,7 +19,7 @@ where refine.py turns them into errors.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -43,10 +43,10 @@ BURIED_DIRECTIONS = 8
 
 
 @dataclass
-class NodeBuffers:
-    """Node arrays resident in Dr.Jit (float32), uploaded once per change of the node count."""
+class NodeArrays:
+    """The node arrays a wave reads, all resident in Dr.Jit (float32): a PyTree that a frozen
+    wave (``_wave``) takes whole, its widths free to change between calls."""
 
-    size: int
     poly: tuple          # four mi.Vector3f (N,)
     normal: object       # mi.Vector3f (N,)
     fill: object         # mi.Float (N,)
@@ -58,7 +58,19 @@ class NodeBuffers:
     curve: tuple         # centre, axis (mi.Vector3f) and radius (mi.Float) of a triangle's true surface
     sphere: tuple        # bounding-sphere centre (mi.Vector3f) and radius (mi.Float)
     flat: object         # mi.Bool (N,): a triangle or face cluster all of whose points lie in its plane
-    volume: np.ndarray   # (N,) bool, numpy: volume clusters (which waves draw below one, ``evaluate``)
+
+    def arrays(self) -> "NodeArrays":
+        """The Dr.Jit arrays alone (what a frozen wave may take: no Python values in it)."""
+        return NodeArrays(**{f.name: getattr(self, f.name) for f in fields(NodeArrays)})
+
+
+@dataclass
+class NodeBuffers(NodeArrays):
+    """Node arrays resident in Dr.Jit, uploaded once per change of the node count, with their
+    count and which nodes are volume clusters (numpy)."""
+
+    size: int = 0
+    volume: np.ndarray = None   # (N,) bool: volume clusters (which waves draw below one, ``evaluate``)
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
@@ -67,12 +79,13 @@ class NodeBuffers:
 
         child = cluster_children(nodes.kind, nodes.children)
         curve = np.asarray(nodes.curve)
-        return cls(len(nodes), tuple(points(nodes.poly[:, k]) for k in range(4)), points(nodes.normal),
-                   to_float(nodes.fill), to_float(nodes.area), to_uint(nodes.kind),
-                   points(nodes.recv_pts), points(nodes.recv_nrm), (to_uint(child[:, 0]), to_uint(child[:, 1])),
-                   (points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
-                   (points(nodes.center), to_float(nodes.radius)), to_bool(flat_nodes(nodes)),
-                   np.asarray(nodes.kind) == VOLUME)
+        return cls(poly=tuple(points(nodes.poly[:, k]) for k in range(4)), normal=points(nodes.normal),
+                   fill=to_float(nodes.fill), area=to_float(nodes.area), kind=to_uint(nodes.kind),
+                   recv_pts=points(nodes.recv_pts), recv_nrm=points(nodes.recv_nrm),
+                   child=(to_uint(child[:, 0]), to_uint(child[:, 1])),
+                   curve=(points(curve[:, :3]), points(curve[:, 3:6]), to_float(curve[:, 6])),
+                   sphere=(points(nodes.center), to_float(nodes.radius)), flat=to_bool(flat_nodes(nodes)),
+                   size=len(nodes), volume=np.asarray(nodes.kind) == VOLUME)
 
 
 @dataclass
@@ -147,23 +160,25 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     order = np.argsort(volume, kind="stable") if volume.any() and not volume.all() else None
     if order is not None:
         recv, src, volume = recv[order], src[order], volume[order]
+    arrays = buf.arrays()
+    seed_dr = dr.opaque(mi.UInt32, seed)
     # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
     with exact_arithmetic():
         for a in range(0, m, per_launch):
             b = min(m, a + per_launch)
-            lanes = _lanes(mi_scene, buf, recv[a:b], src[a:b], rays_per_point, seed, offset, periodic,
-                           weigh_faces=WEIGH_FACES_IN_VOLUMES and bool(volume[a:b].any()), spread=spread)
-            # (the samples evaluated with the wave's sums: kept unevaluated, their rays would be traced again)
-            sampled = (lanes.g_volume * lanes.v, lanes.tri) if samples else ()
-            g[a:b], gv[a:b], gp[a:b], g2[a:b], ra = _reduce(b - a, k, rays_per_point, lanes.g_exact, lanes.kernel,
-                                                            lanes.g_volume, lanes.traced, lanes.v, *sampled)
-            rays += ra
+            weigh = WEIGH_FACES_IN_VOLUMES and bool(volume[a:b].any())
+            point_lane = dr.arange(mi.UInt32, (b - a) * k)
+            ray_lane = point_lane if rays_per_point == 1 else dr.arange(mi.UInt32, (b - a) * k * rays_per_point)
+            out = _wave(mi_scene, arrays, to_uint(recv[a:b]), to_uint(src[a:b]), ray_lane, point_lane, seed_dr,
+                       rays_per_point, offset, periodic, weigh, spread, samples)
+            g[a:b], gv[a:b], gp[a:b], g2[a:b] = (np.asarray(x.numpy(), np.float32).reshape(b - a, k) for x in out[:4])
+            rays += int(round(float(out[4][0])))
             if samples:
-                found.append(_arriving(*sampled, k, rays_per_point, a))
+                found.append(_arriving(*out[5:], k, rays_per_point, a))
     arrived = join_samples(found) if samples else None
     if order is not None:
-        for out in (g, gv, gp, g2):
-            out[order] = out.copy()
+        for per_point in (g, gv, gp, g2):
+            per_point[order] = per_point.copy()
         if samples:
             arrived = (order[arrived[0]],) + arrived[1:]
     return PointTransfers(g, gv, gp, g2, rays, arrived)
@@ -210,7 +225,7 @@ def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, off
     return np.asarray(value.numpy(), np.float64).reshape(m, k)
 
 
-def _point_form_factor(buf: NodeBuffers, x, nx, corners, ns, planar, s, offset: float):
+def _point_form_factor(buf: NodeArrays, x, nx, corners, ns, planar, s, offset: float):
     """Exact unoccluded form factor from points x (normals nx) to planar sources s (their
     polygon ``corners`` and normal ``ns``), scaled by the source's fill; 0 for volume
     clusters and for points in (or within rounding of) the source's plane or behind it."""
@@ -229,19 +244,41 @@ class Lanes(NamedTuple):
     tri: object          # mi.UInt32: the triangle node the target is on
 
 
-def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offset: float, periodic=None,
-           weigh_faces: bool = False, spread: bool = False) -> Lanes:
-    """One lane per shadow ray of links recv <- src (M,), R = r_count rays at each of the
-    receivers' K points (lane = (link K + point) R + ray). ``weigh_faces``: as ``source_point``'s;
-    ``spread``: as ``ray_target``'s."""
-    m = len(recv)
+class Aimed(NamedTuple):
+    """A wave's lanes with their shadow rays aimed, not yet traced (``_aim``), in Dr.Jit."""
+
+    g_exact: object      # as Lanes'
+    kernel: object
+    g_volume: object
+    traced: object       # mi.Bool: a ray is traced
+    tri: object
+    origin: object       # mi.Vector3f: the ray's origin, lifted off the receiver
+    direction: object    # mi.Vector3f: unit direction
+    length: object       # mi.Float: how far it goes (short of the lifted target)
+
+
+def _lanes(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: int, seed, offset: float,
+           periodic=None, weigh_faces: bool = False, spread: bool = False) -> Lanes:
+    """One lane per shadow ray of links recv_dr <- src_dr (mi.UInt32 (M,)), R = r_count rays at
+    each of the receivers' K points: ``lane`` = (link K + point) R + ray, 0 .. M K R - 1 (the
+    lanes passed in, so that a frozen wave's sizes follow its inputs), ``point_lane`` = 0 ..
+    M K - 1; ``seed`` a mi.UInt32. ``weigh_faces``: as ``source_point``'s; ``spread``: as
+    ``ray_target``'s. The rays are aimed (``_aim``) and traced (``_shoot``); a periodic
+    scene's are traced as they are aimed (``periodic.image_visibility``)."""
+    aimed = _aim(mi_scene, buf, recv_dr, src_dr, lane, point_lane, r_count, seed, offset, periodic,
+                 weigh_faces=weigh_faces, spread=spread)
+    return aimed if isinstance(aimed, Lanes) else _shoot(mi_scene, aimed)
+
+
+def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: int, seed, offset: float,
+         periodic=None, weigh_faces: bool = False, spread: bool = False) -> Aimed | Lanes:
+    """``_lanes`` up to the shadow rays: their aim (``mi_scene`` is only used where ``periodic``
+    is given, whose wrapped rays are then traced too: Lanes)."""
     k = RECEIVER_POINTS
     per_link = k * r_count
-    lane = dr.arange(mi.UInt32, m * per_link)
     link = lane // per_link
     i = (lane // r_count) % k
     j = lane % r_count
-    recv_dr, src_dr = to_uint(recv), to_uint(src)
     r = dr.gather(mi.UInt32, recv_dr, link)
     s = dr.gather(mi.UInt32, src_dr, link)
 
@@ -262,7 +299,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
     else:
         # the form factor depends on the point, not the ray: once per point (M K lanes),
         # then shared by the point's R rays
-        p_lane = dr.arange(mi.UInt32, m * k)
+        p_lane = point_lane
         p_r = dr.gather(mi.UInt32, recv_dr, p_lane // k)
         p_s = dr.gather(mi.UInt32, src_dr, p_lane // k)
         p_x = dr.gather(mi.Vector3f, buf.recv_pts, p_r * k + p_lane % k)
@@ -275,7 +312,7 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
         g_exact = dr.gather(mi.Float, g_point, lane // r_count)
 
     # --- shadow ray to one of the source's stratified points -------------------------------
-    key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s * 0x632BE5AB)
+    key = hash_u32(hash_u32(r ^ hash_u32(seed + 0x9E3779B9)) + s * 0x632BE5AB)
     pattern = pattern_size(r_count, spread)
     t = ray_target(i, j, r_count, key, spread)
     # (a volume cluster's triangle is drawn by what it may send to the point, ``source_point``;
@@ -304,10 +341,16 @@ def _lanes(mi_scene, buf: NodeBuffers, recv, src, r_count: int, seed: int, offse
     kernel = dr.select(valid, cos_x * cos_y / dr.maximum(dist2, _TINY), 0.0)
     g_volume = volume_sample(x, nx, ny, tri_corners, per_area, planar, offset)
     traced = valid & ((g_exact > 0) | ~planar)
-    ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
-    ray.maxt = shadow_ray_length(dist, offset)
-    v = dr.select(traced, dr.select(mi_scene.ray_test(ray, traced), 0.0, 1.0), 0.0)
-    return Lanes(g_exact, kernel, g_volume, traced, v, tri)
+    return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
+                 shadow_ray_length(dist, offset))
+
+
+def _shoot(mi_scene, aimed: Aimed) -> Lanes:
+    """The lanes of a wave whose shadow rays are aimed (``_aim``), once those are traced."""
+    ray = mi.Ray3f(aimed.origin, aimed.direction)
+    ray.maxt = aimed.length
+    v = dr.select(aimed.traced, dr.select(mi_scene.ray_test(ray, aimed.traced), 0.0, 1.0), 0.0)
+    return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
@@ -319,29 +362,76 @@ def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
     return dr.select(~planar & front, point_to_polygon_dr(x, nx, tri_corners) * per_area, 0.0)
 
 
-def _reduce(m: int, k: int, r_count: int, g_exact, kernel, g_volume, traced, v, *also):
-    """The wave's per-ray lanes summed per receiver point and combined there, in Dr.Jit; back
-    in numpy as four (M, K) float32 arrays (see ``_lanes``). ``also``: further per-lane
-    values evaluated in the same kernel."""
-    lanes = [g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
-             dr.select(traced, 1.0, 0.0)]
-    dr.eval(*lanes, *also)
-    g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in lanes[:6])
-    n_traced = dr.sum(lanes[6])
+def _wave(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, seed, r_count: int, offset: float,
+          periodic, weigh_faces: bool, spread: bool, samples: bool) -> tuple:
+    """One launch of ``evaluate``: the lanes of links recv_dr <- src_dr (``_lanes``) summed per
+    receiver point (``_sums``), in Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,), the
+    rays traced (mi.Float (1,)) and, with ``samples``, the volume-cluster samples' transfer and
+    triangle node per lane (for ``_arriving``). With FREEZE_WAVES (not periodic), the rays'
+    aim and the sums replay recorded kernels (``_frozen_aim``, ``_frozen_sums``); only the
+    rays are traced as they come (a frozen function takes the scene's every array as an input)."""
+    # (nor a single link: its per-link sums are of width 1, which a recording takes for a
+    # scalar, and a replay over more links would then broadcast the first link's)
+    if FREEZE_WAVES and periodic is None and dr.width(recv_dr) > 1:
+        aimed = _frozen_aim(None, buf, recv_dr, src_dr, lane, point_lane, r_count, seed, offset,
+                            weigh_faces=weigh_faces, spread=spread)
+        # (a frozen function traverses plain tuples, not named ones)
+        return _frozen_sums(r_count, point_lane, tuple(_shoot(mi_scene, Aimed(*aimed))), samples)
+    lanes = _lanes(mi_scene, buf, recv_dr, src_dr, lane, point_lane, r_count, seed, offset, periodic,
+                   weigh_faces=weigh_faces, spread=spread)
+    return _sampled_sums(r_count, point_lane, lanes, samples)
+
+
+def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tuple:
+    """``_sums``, and with ``samples`` the volume-cluster samples' transfer and triangle node
+    per lane (evaluated with the sums: kept unevaluated, their rays would be traced again)."""
+    sampled = (lanes.g_volume * lanes.v, lanes.tri) if samples else ()
+    return _sums(r_count, point_lane, lanes, *sampled) + sampled
+
+
+#: Whether ``evaluate`` replays its waves' recorded kernels (``dr.freeze``) rather than tracing
+#: them anew on every call: tracing a wave (its Python, then Dr.Jit's assembly of the kernel)
+#: took 1-3 ms a launch, half a small scene's solve. A wave is recorded once per kind of call
+#: (rays per point, ray offset, the flags) and replayed for any number of links; periodic
+#: scenes' waves are traced as before.
+FREEZE_WAVES = True
+#: Recordings kept of each frozen half (least recently used dropped): one per kind of call.
+FROZEN_WAVES_KEPT = 64
+
+
+def _freeze(function):
+    return dr.freeze(function, limit=FROZEN_WAVES_KEPT, warn_after=FROZEN_WAVES_KEPT)
+
+
+_frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
+_frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
+                                                                                samples))
+
+
+def _sums(r_count: int, point_lane, lanes: Lanes, *also) -> tuple:
+    """The wave's per-ray lanes (``_lanes``) summed per receiver point and combined there, in
+    Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,) and the rays traced (mi.Float (1,)),
+    evaluated. ``also``: further per-lane values evaluated in the same kernel."""
+    k = RECEIVER_POINTS
+    kernel, g_volume, v = lanes.kernel, lanes.g_volume, lanes.v
+    summed = [lanes.g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
+              dr.select(lanes.traced, 1.0, 0.0)]
+    dr.eval(*summed, *also)
+    g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in summed[:6])
+    n_traced = dr.sum(summed[6])
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
     # for the transfer and at each point for its spread; a point none of whose rays could be
     # aimed (grazing) takes the link's
     # (a ratio of sums over every ray of the link: over one point's few rays the ratio is
     # biased towards the area-weighted fraction)
     ks_l, kv_l = dr.block_sum(k_s, k), dr.block_sum(kv_s, k)
-    vis_link = dr.gather(mi.Float, dr.select(ks_l > 0, kv_l / dr.select(ks_l > 0, ks_l, 1.0), 1.0),
-                         dr.arange(mi.UInt32, m * k) // k)
+    vis_link = dr.gather(mi.Float, dr.select(ks_l > 0, kv_l / dr.select(ks_l > 0, ks_l, 1.0), 1.0), point_lane // k)
     vis_point = dr.select(k_s > 0, kv_s / dr.select(k_s > 0, k_s, 1.0), vis_link)
     g_e = g_e / r_count
     out = (g_e + g_vol / r_count, g_e * vis_link + g_vol_v / r_count, g_e * vis_point + g_vol_v / r_count,
-           g_vol_sq / r_count)
-    dr.eval(*out, n_traced)
-    return tuple(np.asarray(a.numpy(), np.float32).reshape(m, k) for a in out) + (int(round(float(n_traced[0]))),)
+           g_vol_sq / r_count, n_traced)
+    dr.eval(*out)
+    return out
 
 
 def pattern_size(rays_per_point: int, spread: bool = False) -> int:
@@ -377,7 +467,7 @@ def ray_target(i, j, rays_per_point: int, key=0, spread: bool = False):
 WEIGH_FACES_IN_VOLUMES = True
 
 
-def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None, weigh_faces: bool = False):
+def source_point(buf: NodeArrays, s, t, pattern: int, key, x=None, nx=None, weigh_faces: bool = False):
     """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each), the
     triangle node it is on (mi.UInt32) and the ratio (mi.Float) of the probability of
     drawing that triangle by area to the probability it was drawn with, for the link whose
@@ -454,7 +544,7 @@ def source_point(buf: NodeBuffers, s, t, pattern: int, key, x=None, nx=None, wei
     return y, n, node, drawn
 
 
-def _reach(buf: NodeBuffers, c, x, nx):
+def _reach(buf: NodeArrays, c, x, nx):
     """mi.Float: what nodes c may send to points x (normals nx), as ``source_point`` weighs a
     volume cluster's children, after the kernel A cos_x cos_c / r^2 over the child's bounding
     sphere (centre at d from x, radius R): its area over max(|d|^2, R^2), times upper bounds of
