@@ -151,7 +151,8 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     k = RECEIVER_POINTS
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
     rays = 0
-    per_launch = max(1, MAX_LANES // (k * rays_per_point))
+    frozen = FREEZE_WAVES and periodic is None
+    per_launch = max(1, (FROZEN_LANES if frozen else MAX_LANES) // (k * rays_per_point))
     found = []
     # (the links from volume clusters last, in launches of their own where they fill one: only
     # theirs weigh the face clusters they descend to, ``source_point``; a link's lanes depend on
@@ -395,6 +396,10 @@ def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tupl
 #: (rays per point, ray offset, the flags) and replayed for any number of links; periodic
 #: scenes' waves are traced as before.
 FREEZE_WAVES = True
+#: Most lanes in one frozen wave: its aimed rays are kept between its two halves (about 50 B
+#: a lane), so its launches are smaller than MAX_LANES (a fine Cornell box's peak memory rose
+#: by 230 MB with waves of MAX_LANES).
+FROZEN_LANES = 1 << 20
 #: Recordings kept of each frozen half (least recently used dropped): one per kind of call.
 FROZEN_WAVES_KEPT = 64
 
