@@ -405,12 +405,20 @@ FROZEN_WAVES_KEPT = 64
 
 
 def _freeze(function):
-    return dr.freeze(function, limit=FROZEN_WAVES_KEPT, warn_after=FROZEN_WAVES_KEPT)
+    # (no warning after many recordings: each scene's ray offset is a kind of call of its own, so
+    # a process that solves many scenes records many; a test checks that a warm solve records none)
+    return dr.freeze(function, limit=FROZEN_WAVES_KEPT, warn_after=0)
 
 
 _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
 _frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
                                                                                 samples))
+
+
+def wave_recordings() -> int:
+    """How many times this process recorded a frozen wave's halves (``FREEZE_WAVES``): once per
+    kind of call; a solve of a scene solved before with the same settings adds none."""
+    return _frozen_aim.n_recordings + _frozen_sums.n_recordings
 
 
 def _sums(r_count: int, point_lane, lanes: Lanes, *also) -> tuple:

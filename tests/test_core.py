@@ -82,6 +82,51 @@ def test_waves_taken_a_chunk_at_a_time_solve_bitwise_the_same(monkeypatch):
     assert chunked.stats["rays"] == whole.stats["rays"]
 
 
+def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_none(monkeypatch):
+    """The transfer waves replay recorded kernels (``transfer.FREEZE_WAVES``): the very solution
+    of waves traced anew on every call, and a scene solved again records nothing new (recorded
+    anew on each call, as when the numpy buffers handed to Dr.Jit came at varying alignments,
+    they would cost more than tracing)."""
+    from mirad import transfer
+    scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
+    monkeypatch.setattr(transfer, "FREEZE_WAVES", False)
+    traced = mirad.solve(scene, tolerance=0.1, seed=2, **HIER)
+    monkeypatch.setattr(transfer, "FREEZE_WAVES", True)
+    recorded = mirad.solve(scene, tolerance=0.1, seed=2, **HIER)
+    count = transfer.wave_recordings()
+    again = mirad.solve(scene, tolerance=0.1, seed=2, **HIER)
+    assert transfer.wave_recordings() == count > 0
+    for sol in (recorded, again):
+        np.testing.assert_array_equal(sol.triangle_radiosity, traced.triangle_radiosity)
+        assert sol.stats["rays"] == traced.stats["rays"]
+
+
+def test_a_wave_recorded_for_some_links_replays_exactly_for_others(monkeypatch):
+    """One recording of a wave serves any number of links: waves of 1, 2, 9 and 40 links, in
+    that order (three rays a point: a kind of call no other test records), give the per-point
+    transfers of waves traced anew, bitwise (a wave of one link once recorded its per-link sums
+    as a scalar, and replayed over the next wave's links gave each the first one's visibility)."""
+    from mirad import transfer
+    scene = mirad.load_scene(SCENES / "wall-pierce" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    buf = transfer.NodeBuffers.upload(nodes)
+    rng = np.random.default_rng(5)
+    planar = np.flatnonzero(nodes.kind != core.VOLUME)
+    for spread in (False, True):
+        for m in (1, 2, 9, 40):
+            recv, src = rng.choice(planar, m), rng.choice(len(nodes), m)
+            waves = []
+            for frozen in (False, True):
+                monkeypatch.setattr(transfer, "FREEZE_WAVES", frozen)
+                waves.append(transfer.evaluate(scene.mi_scene, buf, recv, src, rays_per_point=3, seed=7,
+                                               offset=state.offset, spread=spread))
+            traced, recorded = waves
+            assert recorded.rays == traced.rays
+            for name in ("g", "gv", "gv_point", "gv_square"):
+                np.testing.assert_array_equal(getattr(recorded, name), getattr(traced, name), err_msg=f"{name} m={m}")
+
+
 def test_a_scene_solved_again_starts_from_its_kept_tree():
     """The node tree (and its buried shares) depends on the scene and the seed alone: the
     first solve keeps it on the scene and the next ones start from a copy, bitwise as if
