@@ -406,8 +406,9 @@ FROZEN_WAVES_KEPT = 64
 
 def _freeze(function):
     # (no warning after many recordings: each scene's ray offset is a kind of call of its own, so
-    # a process that solves many scenes records many; a test checks that a warm solve records none)
-    return dr.freeze(function, limit=FROZEN_WAVES_KEPT, warn_after=0)
+    # a process that solves many scenes records many; a test checks that a warm solve records none.
+    # warn_after=0 does not turn it off: Dr.Jit then warns at every recording after the first)
+    return dr.freeze(function, limit=FROZEN_WAVES_KEPT, warn_after=1 << 30)
 
 
 _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))

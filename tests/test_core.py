@@ -82,11 +82,12 @@ def test_waves_taken_a_chunk_at_a_time_solve_bitwise_the_same(monkeypatch):
     assert chunked.stats["rays"] == whole.stats["rays"]
 
 
-def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_none(monkeypatch):
+def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_none(monkeypatch, capfd):
     """The transfer waves replay recorded kernels (``transfer.FREEZE_WAVES``): the very solution
     of waves traced anew on every call, and a scene solved again records nothing new (recorded
     anew on each call, as when the numpy buffers handed to Dr.Jit came at varying alignments,
-    they would cost more than tracing)."""
+    they would cost more than tracing). Recording says nothing on stderr (Dr.Jit's warning
+    about functions recorded many times: each scene records its own)."""
     from mirad import transfer
     scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
     monkeypatch.setattr(transfer, "FREEZE_WAVES", False)
@@ -99,6 +100,7 @@ def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_no
     for sol in (recorded, again):
         np.testing.assert_array_equal(sol.triangle_radiosity, traced.triangle_radiosity)
         assert sol.stats["rays"] == traced.stats["rays"]
+    assert "frozen function" not in capfd.readouterr().err
 
 
 def test_a_wave_recorded_for_some_links_replays_exactly_for_others(monkeypatch):
