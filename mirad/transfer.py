@@ -70,7 +70,7 @@ class NodeBuffers(NodeArrays):
     count and which nodes are volume clusters (numpy)."""
 
     size: int = 0
-    volume: np.ndarray = None   # (N,) bool: volume clusters (which waves draw below one, ``evaluate``)
+    volume: np.ndarray | None = None   # (N,) bool: volume clusters (which waves draw below one, ``evaluate``)
 
     @classmethod
     def upload(cls, nodes: Nodes) -> "NodeBuffers":
@@ -170,8 +170,10 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
             weigh = WEIGH_FACES_IN_VOLUMES and bool(volume[a:b].any())
             point_lane = dr.arange(mi.UInt32, (b - a) * k)
             ray_lane = point_lane if rays_per_point == 1 else dr.arange(mi.UInt32, (b - a) * k * rays_per_point)
+            # (nor a single link: its per-link sums are of width 1, which a recording takes for a
+            # scalar, and a replay over more links would then broadcast the first link's)
             out = _wave(mi_scene, arrays, to_uint(recv[a:b]), to_uint(src[a:b]), ray_lane, point_lane, seed_dr,
-                       rays_per_point, offset, periodic, weigh, spread, samples)
+                        rays_per_point, offset, periodic, weigh, spread, samples, frozen and b - a > 1)
             g[a:b], gv[a:b], gp[a:b], g2[a:b] = (np.asarray(x.numpy(), np.float32).reshape(b - a, k) for x in out[:4])
             rays += int(round(float(out[4][0])))
             if samples:
@@ -364,16 +366,14 @@ def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
 
 
 def _wave(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, seed, r_count: int, offset: float,
-          periodic, weigh_faces: bool, spread: bool, samples: bool) -> tuple:
+          periodic, weigh_faces: bool, spread: bool, samples: bool, frozen: bool) -> tuple:
     """One launch of ``evaluate``: the lanes of links recv_dr <- src_dr (``_lanes``) summed per
     receiver point (``_sums``), in Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,), the
     rays traced (mi.Float (1,)) and, with ``samples``, the volume-cluster samples' transfer and
-    triangle node per lane (for ``_arriving``). With FREEZE_WAVES (not periodic), the rays'
-    aim and the sums replay recorded kernels (``_frozen_aim``, ``_frozen_sums``); only the
+    triangle node per lane (for ``_arriving``). ``frozen`` (FREEZE_WAVES, not periodic): the
+    rays' aim and the sums replay recorded kernels (``_frozen_aim``, ``_frozen_sums``); only the
     rays are traced as they come (a frozen function takes the scene's every array as an input)."""
-    # (nor a single link: its per-link sums are of width 1, which a recording takes for a
-    # scalar, and a replay over more links would then broadcast the first link's)
-    if FREEZE_WAVES and periodic is None and dr.width(recv_dr) > 1:
+    if frozen:
         aimed = _frozen_aim(None, buf, recv_dr, src_dr, lane, point_lane, r_count, seed, offset,
                             weigh_faces=weigh_faces, spread=spread)
         # (a frozen function traverses plain tuples, not named ones)
