@@ -1244,9 +1244,29 @@ LINK_FIRST_RAYS = True
 #: (furnished room, its direct light alone); the room at 0.15 1.007 -> 0.982 % and the
 #: 36-triangle box at 0.1 0.543 -> 0.497 % (means over seeds), for the same rays.
 REGATHER_LEAF_SHADOWS = True
-#: Whether each leaf below a link fitted from one ray a point checks with a ray of its own that
-#: no shadow the points missed lies on it (``transfer.leaves_blocked``).
+#: Whether each leaf below a link fitted from one ray a point checks with rays of its own
+#: (``check_rays``) that no shadow the points missed lies on it (``transfer.leaves_blocked``).
 CHECK_FITTED_SHADOWS = True
+
+
+def check_rays(transfer: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M,) shadow rays with which a leaf below a link fitted from one ray a point checks that no
+    shadow lies on it (``transfer.leaves_blocked``): enough that what a leaf in a penumbra that
+    every ray missed takes too much stays within its share of the tolerance.
+
+    The fit was drawn from points that all saw the source (transfer ``transfer`` (M,), the fit's
+    form factor at the receiver's centre; ``b_src`` (M,) its radiosity, ``h_recv`` (M,) the leaf's
+    whole irradiance, W/m^2). A leaf that sees a share p of the source passes k rays with
+    probability p^k and then takes the whole transfer F b, (1 - p) F b too much: its expected
+    excess p^k (1 - p) F b is at most F b / (e (k + 1)) over p. That bound within the pair's
+    allowance of the tolerance (``gather_allowance``: GATHER_SHARE tol sqrt(h F b)) asks
+    k + 1 >= sqrt(F b / h) / (e GATHER_SHARE tol), at most SOURCE_POINTS, the source's stratified
+    points that the rays aim at. (With one ray the fits' excess was a bias: on the furnished room
+    at 0.15 the 9,019 fitted leaves that 16 rays found partly hidden had taken 25 % more than
+    their own points measure.)"""
+    share = np.sqrt(np.maximum(transfer * b_src, 0.0) / np.maximum(h_recv, 1e-300))
+    need = np.ceil(share / (np.e * GATHER_SHARE * tolerance) - 1.0)
+    return np.clip(np.nan_to_num(need, nan=1.0), 1, SOURCE_POINTS).astype(np.int64)
 
 
 def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centroid: np.ndarray, recv: np.ndarray,
@@ -1864,15 +1884,17 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         across = crossed_leaves(state, below, leaves, centroid, recv[ok], x0[ok], leaf, owner) & \
             (state.buried[leaves[leaf]] < 1.0)
         # (and a leaf in a shadow that all of the receiver's points missed, where each point's one
-        # ray arrived: one ray from its centroid to the source says so)
+        # ray arrived: rays from its centroid to the source say so, ``check_rays`` of them)
         if CHECK_FITTED_SHADOWS:
             one_ray = np.flatnonzero(~whole[k] & ~across)
-            if len(one_ray):
-                checked = leaves[leaf[one_ray]]
-                across[one_ray] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[one_ray]],
-                                                 nodes.normal[checked].astype(np.float64), checked, src[k[one_ray]],
-                                                 state.settings.seed + 0x5AD0, state.offset)
-                state.rays += len(one_ray)
+            checks = check_rays(a[k[one_ray]], b_src[src[k[one_ray]]], h_node[leaves[leaf[one_ray]]], tol)
+            for count in np.unique(checks):
+                these = one_ray[checks == count]
+                checked = leaves[leaf[these]]
+                across[these] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[these]],
+                                               nodes.normal[checked].astype(np.float64), checked, src[k[these]],
+                                               state.settings.seed + 0x5AD0, state.offset, int(count))
+                state.rays += len(these) * int(count)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
             leaf, owner, k = leaf[~across], owner[~across], k[~across]

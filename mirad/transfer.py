@@ -646,28 +646,35 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
 
 
 def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, recv: np.ndarray,
-                   src: np.ndarray, seed: int, offset: float) -> np.ndarray:
-    """(M,) bool: whether the shadow ray from the centroid (M, 3) of each node recv (M,), with
-    normals ``normal`` (M, 3), to one of the stratified points of source nodes src (M,)
-    (``source_point``; which one and where on it from a hash of the pair and seed) is blocked.
+                   src: np.ndarray, seed: int, offset: float, rays: int = 1) -> np.ndarray:
+    """(M,) bool: whether any of ``rays`` shadow rays from the centroid (M, 3) of each node recv
+    (M,), with normals ``normal`` (M, 3), to the stratified points of source nodes src (M,)
+    (``source_point``; which ones and where on it from a hash of the pair and seed) is blocked.
     A point on the source behind the receiver, or the receiver behind the source, counts as not
     blocked (the ray says nothing of a shadow)."""
     m = len(src)
     out = np.zeros(m, bool)
+    per = max(1, MAX_LANES // rays)
+    step = max(SOURCE_POINTS // rays, 1)       # (the rays spread over the source's points)
     with exact_arithmetic():
-        for a in range(0, m, MAX_LANES):
-            b = min(m, a + MAX_LANES)
-            s = to_uint(src[a:b])
-            key = hash_u32(hash_u32(to_uint(recv[a:b]) ^ hash_u32(mi.UInt32(seed) + 0x2545F491)) + s * 0x632BE5AB)
-            y, ny, _, _ = source_point(buf, s, key % SOURCE_POINTS, SOURCE_POINTS, key)
-            x, nx = to_vector3(centroid[a:b]), to_vector3(normal[a:b])
+        for a in range(0, m, per):
+            b = min(m, a + per)
+            lane = dr.arange(mi.UInt32, (b - a) * rays)
+            pair, t = lane // rays, lane % rays
+            s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
+            r = dr.gather(mi.UInt32, to_uint(recv[a:b]), pair)
+            key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x2545F491)) + s * 0x632BE5AB)
+            y, ny, _, _ = source_point(buf, s, (key + t * step) % SOURCE_POINTS, SOURCE_POINTS, key)
+            x = dr.gather(mi.Vector3f, to_vector3(centroid[a:b]), pair)
+            nx = dr.gather(mi.Vector3f, to_vector3(normal[a:b]), pair)
             o = x + nx * offset
             d = (y + ny * offset) - o
             dist = dr.norm(d)
             aimed = (dr.dot(d, nx) > 0) & (dr.dot(d, ny) < 0) & (dist > 0)
             ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
             ray.maxt = shadow_ray_length(dist, offset)
-            out[a:b] = np.asarray(mi_scene.ray_test(ray, aimed).numpy(), bool)
+            hit = np.asarray(mi_scene.ray_test(ray, aimed).numpy(), bool)
+            out[a:b] = hit.reshape(b - a, rays).any(axis=1)
     return out
 
 
