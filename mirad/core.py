@@ -1888,13 +1888,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         if CHECK_FITTED_SHADOWS:
             one_ray = np.flatnonzero(~whole[k] & ~across)
             checks = check_rays(a[k[one_ray]], b_src[src[k[one_ray]]], h_node[leaves[leaf[one_ray]]], tol)
-            for count in np.unique(checks):
-                these = one_ray[checks == count]
-                checked = leaves[leaf[these]]
-                across[these] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[these]],
-                                               nodes.normal[checked].astype(np.float64), checked, src[k[these]],
-                                               state.settings.seed + 0x5AD0, state.offset, int(count))
-                state.rays += len(these) * int(count)
+            checked = leaves[leaf[one_ray]]
+            across[one_ray] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[one_ray]],
+                                             nodes.normal[checked].astype(np.float64), checked, src[k[one_ray]],
+                                             state.settings.seed + 0x5AD0, state.offset, checks)
+            state.rays += int(checks.sum())
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
             leaf, owner, k = leaf[~across], owner[~across], k[~across]

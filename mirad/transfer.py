@@ -646,25 +646,31 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
 
 
 def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, recv: np.ndarray,
-                   src: np.ndarray, seed: int, offset: float, rays: int = 1) -> np.ndarray:
-    """(M,) bool: whether any of ``rays`` shadow rays from the centroid (M, 3) of each node recv
-    (M,), with normals ``normal`` (M, 3), to the stratified points of source nodes src (M,)
-    (``source_point``; which ones and where on it from a hash of the pair and seed) is blocked.
-    A point on the source behind the receiver, or the receiver behind the source, counts as not
-    blocked (the ray says nothing of a shadow)."""
+                   src: np.ndarray, seed: int, offset: float, rays=1) -> np.ndarray:
+    """(M,) bool: whether any of ``rays`` (an int, or (M,) per node) shadow rays from the
+    centroid (M, 3) of each node recv (M,), with normals ``normal`` (M, 3), to the stratified
+    points of source nodes src (M,) (``source_point``; which ones and where on it from a hash of
+    the pair and seed, a node's rays spread over the SOURCE_POINTS points) is blocked. A point on
+    the source behind the receiver, or the receiver behind the source, counts as not blocked (the
+    ray says nothing of a shadow). One wave for all nodes, up to MAX_LANES rays at a time."""
     m = len(src)
+    count = np.broadcast_to(np.asarray(rays, np.int64), (m,))
     out = np.zeros(m, bool)
-    per = max(1, MAX_LANES // rays)
-    step = max(SOURCE_POINTS // rays, 1)       # (the rays spread over the source's points)
+    ends = np.cumsum(count)
+    a = 0
     with exact_arithmetic():
-        for a in range(0, m, per):
-            b = min(m, a + per)
-            lane = dr.arange(mi.UInt32, (b - a) * rays)
-            pair, t = lane // rays, lane % rays
+        while a < m:
+            # (whole nodes per wave: as many as MAX_LANES rays hold, at least one)
+            b = max(a + 1, int(np.searchsorted(ends, (ends[a - 1] if a else 0) + MAX_LANES, side="right")))
+            c = count[a:b]
+            pair_of = np.repeat(np.arange(b - a), c)
+            t_of = np.arange(len(pair_of)) - np.repeat(np.cumsum(c) - c, c)
+            step_of = np.maximum(SOURCE_POINTS // np.maximum(c, 1), 1)[pair_of]
+            pair = to_uint(pair_of)
             s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
             r = dr.gather(mi.UInt32, to_uint(recv[a:b]), pair)
             key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x2545F491)) + s * 0x632BE5AB)
-            y, ny, _, _ = source_point(buf, s, (key + t * step) % SOURCE_POINTS, SOURCE_POINTS, key)
+            y, ny, _, _ = source_point(buf, s, (key + to_uint(t_of * step_of)) % SOURCE_POINTS, SOURCE_POINTS, key)
             x = dr.gather(mi.Vector3f, to_vector3(centroid[a:b]), pair)
             nx = dr.gather(mi.Vector3f, to_vector3(normal[a:b]), pair)
             o = x + nx * offset
@@ -674,7 +680,8 @@ def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.
             ray = mi.Ray3f(o, d / dr.maximum(dist, _TINY))
             ray.maxt = shadow_ray_length(dist, offset)
             hit = np.asarray(mi_scene.ray_test(ray, aimed).numpy(), bool)
-            out[a:b] = hit.reshape(b - a, rays).any(axis=1)
+            out[a:b] = np.bincount(pair_of, weights=hit, minlength=b - a) > 0
+            a = b
     return out
 
 
