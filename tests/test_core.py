@@ -1365,6 +1365,32 @@ def _visible_light(x: np.ndarray, light: tuple, plate: tuple, z_light: float, z_
     return full - hidden
 
 
+def test_check_rays_are_the_fewest_that_bound_a_penumbras_excess():
+    """``core.check_rays``: k rays a leaf, the fewest for which the largest expected excess of a
+    leaf that all k rays passed, max over p of p^k (1 - p) F B (at p = k / (k + 1)), is within the
+    pair's allowance GATHER_SHARE tol sqrt(H F B), or SOURCE_POINTS where that is not enough; at
+    least one. Over transfers from a thousandth of the leaf's light to all of it."""
+    rng = np.random.default_rng(3)
+    m = 2000
+    h = 10.0 ** rng.uniform(-3, 3, m)
+    fb = h * 10.0 ** rng.uniform(-3, 0, m)
+    b = 10.0 ** rng.uniform(-2, 2, m)
+    tol = 10.0 ** rng.uniform(-2.5, -0.3, m)
+    k = np.concatenate([core.check_rays(fb[i:i + 1] / b[i], b[i:i + 1], h[i:i + 1], float(tol[i])) for i in range(m)])
+
+    def excess(rays):
+        p = rays / (rays + 1.0)
+        return p ** rays * (1.0 - p) * fb
+
+    allowed = core.GATHER_SHARE * tol * np.sqrt(h * fb)
+    assert k.min() >= 1 and k.max() <= core.SOURCE_POINTS
+    assert np.all((excess(k) <= allowed * (1 + 1e-9)) | (k == core.SOURCE_POINTS))
+    # (and the fewest: one ray fewer would not do, where there are more than one)
+    assert np.all((k == 1) | (excess(k - 1) > allowed))
+    assert 1 < np.median(k) < core.SOURCE_POINTS
+    assert core.check_rays(np.zeros(1), np.ones(1), np.zeros(1), 0.1)[0] == 1     # (no light, nothing too much)
+
+
 def test_fitted_leaves_in_a_penumbra_take_no_more_than_their_share(tmp_path):
     """A 50 cm black plate 60 cm over a finely meshed floor, under a 40 cm square light 2 m up: a
     penumbra ring of 838 floor triangles around the umbra. A link fitted over a floor cluster whose
