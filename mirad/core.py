@@ -1413,11 +1413,11 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     (``pair_node``, ``pair_src``, ``points`` (M', K)) bring to its points. The transfer's first
     moment over s turns the gradient into irradiance: sum_k w_k sum_j F(x_k -> s_j) v_kj (c_j - c_s)
     over four parts s_j of s (midpoint sub-triangles; a face cluster's rectangle quadrants times
-    its fill), v_kj whether part j's centre is in sight of point k (``_part_moments``). The parts'
-    own visibility, not the transfer's mean visibility over them: where the hidden part of a
-    source is its dark part (a ceiling's band under a lamp 1 cm below it, whose light the
+    its fill), v_kj whether a point of part j is in sight of point k (``_part_moments``). The
+    parts' own visibility, not the transfer's mean visibility over them: where the hidden part of
+    a source is its dark part (a ceiling's band under a lamp 1 cm below it, whose light the
     receivers cannot see), the light they do see is its bright part's. (With the mean visibility
-    the 36-triangle box read -0.69 % signed at 0.05, 0.36 % L1; now -0.21 %, 0.17 %. An expansion
+    the 36-triangle box read -0.69 % signed at 0.05, 0.36 % L1; now -0.26 %, 0.18 %. An expansion
     of the kernel about s's centroid, once used beyond two source radii, has no visibility in it.)
 
     A gradient has zero mean over its source: over every direction its corrections only move
@@ -1564,10 +1564,10 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
                   fill: np.ndarray, normal: np.ndarray, size: np.ndarray, frame: tuple, ff: np.ndarray) -> np.ndarray:
     """(M, 2) first moments of transfers recv <- sources s_pos (positions in the sources'
     arrays) over the sources' J ``parts`` (S, J, 4, 3) (exact form factors, times ``fill``; ``tri``
-    (S,) the triangles'), each part at each of the receivers' points times whether a point of the part
-    (hashed per point and part) is in sight of it (a shadow ray, counted in ``state.rays``), in the sources' plane
-    ``frame`` (t1, t2) and units of their ``size``; scaled to the transfers' form factors ``ff``
-    (their visibility from their own rays, and their weight)."""
+    (S,) the triangles'), each part at each of the receivers' points times whether a point of the
+    part (hashed per point and part) is in sight of it (a shadow ray, counted in ``state.rays``),
+    in the sources' plane ``frame`` (t1, t2) and units of their ``size``; scaled to the transfers'
+    form factors ``ff`` (their visibility from their own rays, and their weight)."""
     if len(recv) > GATHER_CHUNK:
         # (a chunk at a time: its (M, K, 4) form factors over a large canopy's millions of
         # transfers were the gather's peak memory)
