@@ -1470,9 +1470,10 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))     # (P, 3, K)
     per_point = np.matmul(design_t, design).reshape(-1, 9)     # (a batched product: einsum's is 2-3x slower)
     gram = (to_source @ per_point).reshape(-1, 3, 3)
-    regular = np.abs(np.linalg.det(gram)) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
+    adjugate, det = _symmetric_adjugate(gram)
+    regular = np.abs(det) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
     inverse = np.zeros_like(gram)
-    inverse[regular] = np.linalg.inv(gram[regular])
+    inverse[regular] = adjugate[regular] / det[regular, None, None]
     # the leaves' own pairs, for the spread of their light over their points
     leaf_pos = np.full(n, -1, np.int64)
     leaf_pos[leaves] = np.arange(len(leaves))
@@ -1586,7 +1587,7 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     # (the parts' offsets from their mean, the source's centroid: the transfer already carries
     # the source's mean radiosity, which is its field at the centroid)
     part_centre = polygon_centroid(parts, tri[:, None])                      # (S, J, 3)
-    lanes = []
+    lanes, traced = [], []                  # (the parts' transfers as seen, and the rays traced to each)
     count = parts.shape[1]
     with exact_arithmetic():
         origin = x + nx * state.offset
@@ -1611,8 +1612,9 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
             ray = mi.Ray3f(origin, d / dr.maximum(dist, 1e-30))
             ray.maxt = shadow_ray_length(dist, state.offset)
             lanes.append(dr.select(state.scene.mi_scene.ray_test(ray, seen > 0), 0.0, seen))
-        dr.eval(*lanes)
-    state.rays += len(recv) * k * count
+            traced.append(dr.count(seen > 0))
+        dr.eval(*lanes, *traced)
+    state.rays += sum(int(t[0]) for t in traced)
     f = np.stack([np.asarray(a.numpy(), np.float64) for a in lanes], axis=1).reshape(len(recv), k, count)
     f *= fill[s_pos][:, None, None]
     centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None]   # (S, J, 3)
