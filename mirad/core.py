@@ -1579,15 +1579,18 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     if not len(recv):
         return np.zeros((0, 2))
     lane = dr.arange(mi.UInt32, len(recv) * k)
-    # (each lane's source, and the sources' normals and parts uploaded once, not per pair)
+    # (each lane's source, and the sources' normals and parts uploaded once, not per pair; the
+    # receivers' points read from the nodes' resident arrays)
     source = dr.gather(mi.UInt32, to_uint(s_pos), lane // k)
-    x = to_vector3(nodes.recv_pts[recv].reshape(-1, 3))
-    nx = to_vector3(nodes.recv_nrm[recv].reshape(-1, 3))
+    receiver = dr.gather(mi.UInt32, to_uint(recv), lane // k)
+    buf = _buffers(state)
+    x = dr.gather(mi.Vector3f, buf.recv_pts, receiver * k + lane % k)
+    nx = dr.gather(mi.Vector3f, buf.recv_nrm, receiver * k + lane % k)
     ns = dr.gather(mi.Vector3f, to_vector3(normal), source)
     # (the parts' offsets from their mean, the source's centroid: the transfer already carries
     # the source's mean radiosity, which is its field at the centroid)
     part_centre = polygon_centroid(parts, tri[:, None])                      # (S, J, 3)
-    lanes, traced = [], []                  # (the parts' transfers as seen, and the rays traced to each)
+    lanes = []                              # (the parts' transfers as seen)
     count = parts.shape[1]
     with exact_arithmetic():
         origin = x + nx * state.offset
@@ -1595,7 +1598,7 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
         # (each point's ray to a part aims at a point of its own in the part, hashed from the
         # receiver, the source, the point and the part: a regular scene's part centres line up
         # with its edges, where float rounding turns rays over from one copy of it to another)
-        key = hash_u32(hash_u32(dr.gather(mi.UInt32, to_uint(recv), lane // k) * RECEIVER_POINTS + lane % k
+        key = hash_u32(hash_u32(receiver * RECEIVER_POINTS + lane % k
                                 ^ hash_u32(mi.UInt32(state.settings.seed) + 0x3C6EF372)) + source * 0x632BE5AB)
         for j in range(count):
             corners = [dr.gather(mi.Vector3f, to_vector3(parts[:, j, q]), source) for q in range(4)]
@@ -1611,11 +1614,13 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
             dist = dr.norm(d)
             ray = mi.Ray3f(origin, d / dr.maximum(dist, 1e-30))
             ray.maxt = shadow_ray_length(dist, state.offset)
-            lanes.append(dr.select(state.scene.mi_scene.ray_test(ray, seen > 0), 0.0, seen))
-            traced.append(dr.count(seen > 0))
-        dr.eval(*lanes, *traced)
-    state.rays += sum(int(t[0]) for t in traced)
+            # (a blocked ray's form factor negated: the rays traced are counted from the signs,
+            # not by a reduction that would compute the form factors again)
+            lanes.append(dr.select(state.scene.mi_scene.ray_test(ray, seen > 0), -seen, seen))
+        dr.eval(*lanes)
     f = np.stack([np.asarray(a.numpy(), np.float64) for a in lanes], axis=1).reshape(len(recv), k, count)
+    state.rays += int(np.count_nonzero(f))
+    np.maximum(f, 0.0, out=f)
     f *= fill[s_pos][:, None, None]
     centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None]   # (S, J, 3)
     # (each part's offset in its source's plane frame, per source: (S, J, 2))
