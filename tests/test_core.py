@@ -702,6 +702,33 @@ def test_linear_sources_bring_the_corners_closer(tmp_path, monkeypatch):
     assert worst[True] < 2 / 3 * worst[False], worst
 
 
+def test_a_ceiling_beside_a_wall_takes_the_walls_dark_top(tmp_path, monkeypatch):
+    """core.SPREAD_OF_EVERY_TRANSFER: a source's gradient is fitted to its leaves' light at their
+    points from every transfer they take. The corner room's walls darken towards the ceiling
+    (the lamp hangs just under it), and a ceiling triangle with an edge on a wall sees mostly
+    that dark top. Where the wall's leaves took the lamp's light through the passes' links, the
+    fit saw no spread and those triangles read 2-3 % high against the path tracer (65,536
+    paths per triangle), their neighbours away from the wall as much low; the edge triangles'
+    mean must come within 1 %."""
+    sys.path.insert(0, str(SCENES / "hard-cases"))
+    import cases
+    from mirad.reference import triangle_reference
+
+    scene = mirad.load_scene(cases.corner_room(tmp_path))
+    tv = scene.tri_vertices
+    ceiling = scene.tri_shape == scene.shape_index("ceiling")
+    on_wall = ((np.abs(tv[:, :, :2]) < 1e-6) | (np.abs(tv[:, :, :2] - 2.0) < 1e-6)).sum(axis=1).max(axis=1) >= 2
+    tris = np.flatnonzero(ceiling & on_wall)                        # an edge (two corners) on a wall
+    assert len(tris) == 14
+    ref = triangle_reference(scene, samples_per_triangle=1 << 16, seed=5, triangles=tris).radiosity[:, 0]
+    mean = {}
+    for on in (False, True):
+        monkeypatch.setattr(core, "SPREAD_OF_EVERY_TRANSFER", on)
+        sol = mirad.solve(scene, tolerance=0.03, seed=0, **HIER)
+        mean[on] = float(np.mean(sol.triangle_radiosity[tris, 0] / ref - 1))
+    assert mean[False] > 0.01 and abs(mean[True]) < 0.01, mean
+
+
 @pytest.mark.parametrize("mirrored", ["receiver", "light", "both"])
 def test_mirrored_shapes_receive_and_send_as_unmirrored(mirrored):
     """A negative-determinant transform turns Mitsuba's geometric normal against the side it
