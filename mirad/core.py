@@ -1732,8 +1732,8 @@ def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray
 #: not only the gathered pairs'. A wall's top row took its lamp's light from links on its
 #: leaves, whose spread the fit never saw, and the wall's gradient there was about zero while
 #: its light falls by half over its top 0.4 m (path traced): a ceiling triangle along that wall,
-#: whose kernel weighs the wall's dark top most, read +2.9 % (corner room, tolerance 0.03, four
-#: seeds), its neighbour away from the wall -2.5 %; with the spread -0.5 % and -1.5 %.
+#: whose kernel weighs the wall's dark top most, read +2.9 % (corner room, tolerance 0.03, seed
+#: 0), its neighbour away from the wall -2.9 %; with the spread -0.4 % and -1.8 %.
 SPREAD_OF_EVERY_TRANSFER = True
 
 
