@@ -1489,8 +1489,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # each fitted leaf's own pairs, in order (the row each of them adds to), grouped by leaf
     mine = mine[np.argsort(row_of[pair_node[mine]], kind="stable")]
     own_row = row_of[pair_node[mine]]
-    # (float32 as gathered: each product with the sources' radiosity is taken in float64)
-    own_points = points[mine]
     fit_pos = leaf_pos[leaf_nodes]
     rho = state.patch_rho[nodes.patch[leaves]]                # (L', C)
     frame = (t1, t2)
@@ -1521,7 +1519,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     to_receiver = sp.csr_matrix((np.ones(len(r)), (r, np.arange(len(r)))), shape=(n, len(r)))
     moved = sp.csr_matrix((moved_area, (s_pos, np.arange(len(r)))), shape=(len(sources), len(r)))
     taken = sp.csr_matrix((bal_ff, (bal_node, bal_pos)), shape=(n, len(sources)))
-    src_own = pair_src[mine]
     own_pairs = _row_maps(own_row)
     fixed_light = None
     if fixed is not None:
@@ -1529,11 +1526,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         f_mine = np.flatnonzero(row_of[f_node] >= 0)
         f_mine = f_mine[np.argsort(row_of[f_node[f_mine]], kind="stable")]
         fixed_light = np.zeros((len(fit_leaves), RECEIVER_POINTS, f_b.shape[1]))
-        for part, first, last, to_leaf in _row_maps(row_of[f_node[f_mine]]):
-            idx = f_mine[part]
-            values = f_points[idx].astype(np.float64)
-            for c in range(f_b.shape[1]):
-                fixed_light[first:last, :, c] = to_leaf @ (values * f_b[f_src[idx], c:c + 1])
+        _add_point_light(fixed_light, _row_maps(row_of[f_node[f_mine]]), f_mine, f_src, f_points, f_b)
 
     def extra(b_leaf: np.ndarray) -> np.ndarray:
         channels = b_leaf.shape[1]
@@ -1541,10 +1534,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         # each fitted leaf's light at its points from its pairs (F, K, C), and its mean
         # (a map at a time: their (M'', K, C) float64 values are not made at once)
         hl = np.zeros((len(fit_leaves), RECEIVER_POINTS, channels)) if fixed_light is None else fixed_light.copy()
-        for part, first, last, to_leaf in own_pairs:
-            b_src = b_node[src_own[part]]
-            for c in range(channels):
-                hl[first:last, :, c] += to_leaf @ (own_points[part] * b_src[:, c:c + 1])
+        _add_point_light(hl, own_pairs, mine, pair_src, points, b_node)
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
@@ -1581,6 +1571,21 @@ def _row_maps(rows: np.ndarray) -> list[tuple[slice, int, int, sp.csr_matrix]]:
         maps.append((slice(a, b), first, last, sp.csr_matrix(
             (np.ones(b - a), (rows[a:b] - first, np.arange(b - a))), shape=(last - first, b - a))))
     return maps
+
+
+def _add_point_light(out: np.ndarray, maps: list, items: np.ndarray, src: np.ndarray, points: np.ndarray,
+                     b_node: np.ndarray) -> None:
+    """Add to ``out`` (F, K, C) the light transfers bring to their rows' K points: each of
+    ``items`` (M,) (in ``_row_maps`` order, ``maps``) its ``points`` (K,) transfer times its
+    source's radiosity, ``src`` (its source) and ``points`` indexed by the items, ``b_node``
+    (N, C). A map at a time: their (M'', K) float64 products (of float32 transfers, as
+    gathered) are not made at once."""
+    for part, first, last, to_row in maps:
+        idx = items[part]
+        b_src = b_node[src[idx]]
+        values = points[idx]
+        for c in range(out.shape[2]):
+            out[first:last, :, c] += to_row @ (values * b_src[:, c:c + 1])
 
 
 def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.ndarray, tri: np.ndarray,
