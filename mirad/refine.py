@@ -168,9 +168,10 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     src_face = nodes.kind[src] == FACE
     overhang = (nodes.fill[src] < 1.0 - 1e-6) & (d <= 2.0 * nodes.radius[src])
     err = err + np.where(src_face, np.where(overhang, ff, ff * (1.0 - nodes.fill[src])), 0.0)
-    partial = (vis > 1e-6) & (vis < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
     n_rays = RECEIVER_POINTS * rays.astype(np.float64)
-    vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(vis * (1 - vis), 0, 0.25) / n_rays), 0.0)
+    seen = noise_visibility(np.where(ff_unocc > 0, vis, 1.0), n_rays)
+    partial = (seen > 1e-6) & (seen < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
+    vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(seen * (1 - seen), 0, 0.25) / n_rays), 0.0)
     vol = nodes.kind[src] == VOLUME
     if vol.any():
         vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
@@ -178,6 +179,29 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))
+
+
+#: Whether a transfer all of whose shadow rays were blocked counts the noise of its visibility
+#: (``noise_visibility``) instead of being taken as certainly hidden.
+BLOCKED_NOT_CERTAIN = True
+
+
+def noise_visibility(vis: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(M,) the visibility a transfer's noise is counted with, from its estimate vis (M,) over
+    ``rays`` (M,) shadow rays: vis itself, but where every ray was blocked (vis 0) the rule of
+    succession's 1 / (n + 2), the mean visibility that n blocked rays leave under a uniform prior.
+
+    A transfer whose rays all met an occluder is not certainly hidden: the kernel weighs the
+    rays, and from near a large source the one or two targets nearest the receiver decide it.
+    Taken as certain, its error was 0 and nothing evaluated it again: a chair seat's underside
+    0.41 m over the floor read the floor's form factor as 0 where it is 0.80 (7 rays, all
+    aimed near the chair's legs), and on the furnished room at tolerance 0.15 723 such links
+    held 4.5 W of the 143 W the links carry (64 rays a point), 3 %. (Rays that all arrive are
+    checked again at the leaves, ``core.check_rays``.)"""
+    vis = np.asarray(vis, np.float64)
+    if not BLOCKED_NOT_CERTAIN:
+        return vis
+    return np.where(vis <= 0.0, 1.0 / (np.asarray(rays, np.float64) + 2.0), vis)
 
 
 def visible_fraction(ff: np.ndarray, ff_unocc: np.ndarray) -> np.ndarray:

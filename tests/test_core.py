@@ -709,7 +709,11 @@ def test_a_ceiling_beside_a_wall_takes_the_walls_dark_top(tmp_path, monkeypatch)
     that dark top. Where the wall's leaves took the lamp's light through the passes' links, the
     fit saw no spread and those triangles read 2-3 % high against the path tracer (65,536
     paths per triangle), their neighbours away from the wall as much low; the edge triangles'
-    mean must come within 1 %."""
+    mean over four seeds must come within 1 %. (One seed's mean strays by up to 0.7 points from
+    the four's: +1.17 / +0.07 / +0.33 / +0.45 % at seeds 0-3, +0.51 % over the four, +1.51 %
+    without the spread, since partly hidden sources count their deviation at first order,
+    ``core.mean_error_order``, which brought the whole ceiling from -0.56 to -0.01 % at seed 0
+    and the edge triangles with it.)"""
     sys.path.insert(0, str(SCENES / "hard-cases"))
     import cases
     from mirad.reference import triangle_reference
@@ -724,9 +728,29 @@ def test_a_ceiling_beside_a_wall_takes_the_walls_dark_top(tmp_path, monkeypatch)
     mean = {}
     for on in (False, True):
         monkeypatch.setattr(core, "SPREAD_OF_EVERY_TRANSFER", on)
-        sol = mirad.solve(scene, tolerance=0.03, seed=0, **HIER)
-        mean[on] = float(np.mean(sol.triangle_radiosity[tris, 0] / ref - 1))
+        mean[on] = float(np.mean([mirad.solve(scene, tolerance=0.03, seed=seed, **HIER).triangle_radiosity[tris, 0]
+                                  / ref - 1 for seed in range(4)]))
     assert mean[False] > 0.01 and abs(mean[True]) < 0.01, mean
+
+
+def test_a_closed_furnished_room_absorbs_the_power_it_emits(monkeypatch):
+    """Energy: the furnished room is closed (its path-traced reference absorbs what it emits
+    within 0.07 %), so the power its surfaces absorb, (1 - rho) H A summed, is what its lamp and
+    window emit. A transfer all of whose shadow rays met an occluder was taken as wholly hidden,
+    with no error, and nothing evaluated it again (``refine.noise_visibility``): a chair seat's
+    underside read the floor's form factor as 0 where it is 0.80, and at tolerance 0.15 the room
+    absorbed 0.75 % less than it emits (red). Counting the noise of such transfers, 0.36 %
+    (0.13 % at 0.1); within half a percent in every channel."""
+    from mirad import export, refine
+
+    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
+    emitted = (scene.tri_area[:, None] * scene.tri_emission).sum(axis=0)
+    lost = {}
+    for certain in (True, False):
+        monkeypatch.setattr(refine, "BLOCKED_NOT_CERTAIN", not certain)
+        sol = mirad.solve(scene, tolerance=0.15, seed=0, **HIER)
+        lost[certain] = 1.0 - export.triangle_table(sol)["absorbed"].sum(axis=0) / emitted
+    assert np.abs(lost[False]).max() < 0.005 < np.abs(lost[True]).max(), lost
 
 
 @pytest.mark.parametrize("mirrored", ["receiver", "light", "both"])
