@@ -916,6 +916,33 @@ def _logged_pairs(state: State, solved: Solved, log: "SampleLog | None", patch: 
     return out + (rows,)
 
 
+def _source_descent(state: State, solved: Solved, log: "SampleLog | None", pairs: list, split_of,
+                    rounds: int) -> tuple[list, float, int]:
+    """Gathered pairs (``pairs``: their eight columns, node, source, rays, transfer, variance,
+    shadow variance, point values (M, K) and log row, as ``_logged_pairs`` gives them) of which
+    those ``split_of(pairs)`` (M,) bool marks gather from the source's children instead, round
+    after round (a pair kept once is kept for good: each round looks only at the pairs the last
+    one made), at most ``rounds``: (the kept pairs' eight columns, seconds in waves, pairs
+    evaluated)."""
+    kept, seconds, evaluated = [], 0.0, 0
+    for _ in range(rounds):
+        split = split_of(pairs)
+        kept.append([a[~split] for a in pairs])
+        if not split.any():
+            pairs = [a[:0] for a in pairs]
+            break
+        node, src, rays = pairs[:3]
+        kids = state.nodes.children[src[split]]
+        own, slot = np.nonzero(kids >= 0)
+        k_node, k_src, k_rays = node[split][own], kids[own, slot].astype(np.int64), rays[split][own]
+        k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
+        seconds += k_seconds
+        evaluated += len(k_node)
+        pairs = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
+    kept.append(pairs)
+    return _columns(kept), seconds, evaluated
+
+
 def _resample_noisy(state: State, solved: Solved, pair_node: np.ndarray, pair_src: np.ndarray, pair_rays: np.ndarray,
                     g_ff: np.ndarray, g_var: np.ndarray, g_shadow: np.ndarray, g_pts: np.ndarray, b_src: np.ndarray,
                     h_node: np.ndarray, log: "SampleLog | None" = None, rows: np.ndarray | None = None) -> float:
@@ -1974,32 +2001,26 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (a pair kept once is kept for good: each round looks only at the pairs the last one made)
     pairs_now = _lit([pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row])
     del g_var, g_shadow, g_pts, pair_row     # (the unfiltered arrays, before the rounds make copies)
-    kept = []
-    for _ in range(int(nodes.depth.max()) + tree_depth(nodes)):
-        pair_node, pair_src, pair_rays, g_ff = pairs_now[:4]
+
+    def uneven_or_overhanging(pairs: list) -> np.ndarray:
+        """(M,) bool: the pairs whose source gathers from its children instead."""
+        pair_node, pair_src, pair_rays, g_ff = pairs[:4]
         overhang = overhangs(nodes, pair_node, pair_src)
         # a source whose children differ, as seen across it from the leaf (refine.power_errors'
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
         error = g_ff * b_src[pair_src] * varies[pair_src] * \
-            mean_error_order(nodes, pair_node, pair_src, fitted, hidden=pairs_now[4] > 0)
+            mean_error_order(nodes, pair_node, pair_src, fitted, hidden=pairs[4] > 0)
         uneven = error ** 2 > gather_allowance(g_ff, b_src[pair_src], h_node[pair_node], tol)
         volume = nodes.kind[pair_src] == VOLUME
-        split = (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | uneven) & ~volume
-        kept.append([a[~split] for a in pairs_now])
-        if not split.any():
-            pairs_now = [a[:0] for a in pairs_now]
-            break
-        kids = nodes.children[pair_src[split]]
-        own, slot = np.nonzero(kids >= 0)
-        k_node, k_src, k_rays = pair_node[split][own], kids[own, slot], pair_rays[split][own]
-        k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
-        evaluated += len(k_node)
-        seconds_in_waves += k_seconds
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
-    kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = _columns(kept)
+        return (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | uneven) & ~volume
+
+    columns, seconds, count = _source_descent(state, solved, log, pairs_now, uneven_or_overhanging,
+                                              int(nodes.depth.max()) + tree_depth(nodes))
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = columns
+    seconds_in_waves += seconds
+    evaluated += count
     # leaves that a shadow crosses, where their points' quadrature of it errs by more than
     # the pair's share of the tolerance, are split and gather that light at their children's
     # points; the pairs on them that no shadow crosses stay on the split leaf (pushed down)
@@ -2091,24 +2112,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     divided[leaves] = nodes.children[leaves, 0] >= 0
     divided[n:] = nodes.children[n:, 0] >= 0
     extended = replace(solved, b_node=solved.b_node[base])
-    pairs_now = [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row]
-    kept = []
-    for _ in range(MAX_SHADOW_SPLITS + 1):
-        pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = pairs_now
-        down = divided[pair_src] & (g_ff > 0) & ((g_var > 0) | (g_shadow > 0))
-        kept.append([a[~down] for a in pairs_now])
-        if not down.any():
-            pairs_now = [a[:0] for a in pairs_now]
-            break
-        kids = nodes.children[pair_src[down]]
-        own, slot = np.nonzero(kids >= 0)
-        k_node, k_src, k_rays = pair_node[down][own], kids[own, slot].astype(np.int64), pair_rays[down][own]
-        k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, extended, log, k_node, k_src, k_rays)
-        seconds_in_waves += k_seconds
-        evaluated += len(k_node)
-        pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
-    kept.append(pairs_now)
-    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = _columns(kept)
+    columns, seconds, count = _source_descent(
+        state, extended, log, [pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row],
+        lambda pairs: divided[pairs[1]] & (pairs[3] > 0) & ((pairs[4] > 0) | (pairs[5] > 0)), MAX_SHADOW_SPLITS + 1)
+    pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = columns
+    seconds_in_waves += seconds
+    evaluated += count
     b_src, varies, own_varies, fitted = (a[base] for a in (b_src, varies, own_varies, fitted))
     n = len(nodes)
     final_leaves = nodes.leaves
