@@ -870,7 +870,7 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     ff_unocc = (w * g).sum(axis=1)
     b = channel_max(solved.b_node[src])
     vol = nodes.kind[src] == VOLUME
-    vis = noise_visibility(np.where(ff_unocc > 0, visible_fraction(ff, ff_unocc), 1.0), RECEIVER_POINTS * rays)
+    vis = noise_visibility(ff, ff_unocc, RECEIVER_POINTS * rays)
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & ~vol
     var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
     if vol.any():
@@ -1796,8 +1796,7 @@ def first_rays(state: State, links: Links, node: np.ndarray, src: np.ndarray, li
     pair's own rays, from rays independent of them."""
     ff = links.ff[link].astype(np.float64)
     unocc = links.ff_unocc[link].astype(np.float64)
-    vis = noise_visibility(np.where(unocc > 0, visible_fraction(ff, unocc), 1.0),
-                           RECEIVER_POINTS * links.rays[link].astype(np.float64))
+    vis = noise_visibility(ff, unocc, RECEIVER_POINTS * links.rays[link].astype(np.float64))
     b = b_src[src]
     var_one = (unocc * b) ** 2 * vis * (1.0 - vis) / RECEIVER_POINTS
     allowed = gather_allowance(ff, b, h_node[node], tolerance)
@@ -1855,7 +1854,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # gather's noise is), the others one
     # (and those all of whose rays were blocked: not certainly hidden, ``noise_visibility``)
     link_partial = (links.ff < links.ff_unocc) & \
-        (noise_visibility(visible_fraction(links.ff, links.ff_unocc), RECEIVER_POINTS * links.rays) > 0)
+        (noise_visibility(links.ff, links.ff_unocc, RECEIVER_POINTS * links.rays) > 0)
     recv, src = links.recv[on_inner].astype(np.int64), links.src[on_inner].astype(np.int64)
     rays = np.where(link_partial[on_inner], GATHER_RAYS, 1)
     origin = on_inner.astype(np.int64)                      # the link each pair comes from

@@ -169,7 +169,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     overhang = (nodes.fill[src] < 1.0 - 1e-6) & (d <= 2.0 * nodes.radius[src])
     err = err + np.where(src_face, np.where(overhang, ff, ff * (1.0 - nodes.fill[src])), 0.0)
     n_rays = RECEIVER_POINTS * rays.astype(np.float64)
-    seen = noise_visibility(np.where(ff_unocc > 0, vis, 1.0), n_rays)
+    seen = noise_visibility(ff, ff_unocc, n_rays)
     partial = (seen > 1e-6) & (seen < 1 - 1e-6) & (nodes.kind[src] != VOLUME) & ~face_recv
     vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(seen * (1 - seen), 0, 0.25) / n_rays), 0.0)
     vol = nodes.kind[src] == VOLUME
@@ -186,10 +186,11 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
 BLOCKED_NOT_CERTAIN = True
 
 
-def noise_visibility(vis: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """(M,) the visibility a transfer's noise is counted with, from its estimate vis (M,) over
-    ``rays`` (M,) shadow rays: vis itself, but where every ray was blocked (vis 0) the rule of
-    succession's 1 / (n + 2), the mean visibility that n blocked rays leave under a uniform prior.
+def noise_visibility(ff: np.ndarray, ff_unocc: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(M,) the visibility a transfer's noise is counted with, from its form factor ff (M,) and
+    unoccluded one ff_unocc (M,) over ``rays`` (M,) shadow rays: ``visible_fraction``, but where
+    every ray was blocked (0) the rule of succession's 1 / (n + 2), the mean visibility that n
+    blocked rays leave under a uniform prior.
 
     A transfer whose rays all met an occluder is not certainly hidden: the kernel weighs the
     rays, and from near a large source the one or two targets nearest the receiver decide it.
@@ -198,7 +199,7 @@ def noise_visibility(vis: np.ndarray, rays: np.ndarray) -> np.ndarray:
     aimed near the chair's legs), and on the furnished room at tolerance 0.15 723 such links
     held 4.5 W of the 143 W the links carry (64 rays a point), 3 %. (Rays that all arrive are
     checked again at the leaves, ``core.check_rays``.)"""
-    vis = np.asarray(vis, np.float64)
+    vis = np.asarray(visible_fraction(ff, ff_unocc), np.float64)
     if not BLOCKED_NOT_CERTAIN:
         return vis
     return np.where(vis <= 0.0, 1.0 / (np.asarray(rays, np.float64) + 2.0), vis)
