@@ -46,7 +46,7 @@ from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, esca
                        point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
 from .arrays import RAY_OFFSET, channel_max, row_norm, shadow_ray_length, to_bool, to_uint, to_vector3
-from .visibility import hash_u32, to_unit
+from .visibility import hash_u32, opaque_u32, to_unit
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
 from .periodic import box_for
@@ -1654,7 +1654,7 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
         # receiver, the source, the point and the part: a regular scene's part centres line up
         # with its edges, where float rounding turns rays over from one copy of it to another)
         key = hash_u32(hash_u32(receiver * RECEIVER_POINTS + lane % k
-                                ^ hash_u32(mi.UInt32(state.settings.seed) + 0x3C6EF372)) + source * 0x632BE5AB)
+                                ^ hash_u32(opaque_u32(state.settings.seed) + 0x3C6EF372)) + source * 0x632BE5AB)
         for j in range(count):
             corners = [dr.gather(mi.Vector3f, to_vector3(parts[:, j, q]), source) for q in range(4)]
             front = dr.dot(ns, x - corners[0]) > 0.1 * state.offset

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import _runtime  # noqa: F401
 from .arrays import MAX_LANES, RAY_OFFSET, shadow_ray_length, to_float, to_uint, to_vector3
-from .visibility import count_true, hash_u32, project_to_surface, stratified, to_unit, triangle_point
+from .visibility import count_true, hash_u32, opaque_u32, project_to_surface, stratified, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -171,7 +171,7 @@ def _direct_kernel(scene, verts, normals, curve, n: int, seed: int, keys, period
     center, axis = g(curve[0]), g(curve[1])
     radius = dr.gather(mi.Float, to_float(curve[2]), idx)
     key = hash_u32(hash_u32(dr.gather(mi.UInt32, to_uint(keys), idx)
-                            ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995)) + k * 0x632BE5AB)
+                            ^ hash_u32(opaque_u32(seed) + 0x5BD1E995)) + k * 0x632BE5AB)
     u, v = stratified(k, n, key)
     p, nn = project_to_surface(triangle_point(v0, v1, v2, u, v), nrm, center, axis, radius)
 

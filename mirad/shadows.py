@@ -59,7 +59,7 @@ import scipy.fft as sfft
 from . import _runtime  # noqa: F401
 from .formfactor import point_to_triangle_dr
 from .arrays import MAX_LANES, RAY_OFFSET, scene_diagonal, to_float, to_vector3
-from .visibility import hash_u32, stratified, triangle_point
+from .visibility import hash_u32, opaque_u32, stratified, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -601,7 +601,7 @@ def ray_visibility(mi_scene, source_verts, points, normals, *, rays: int = 256, 
     k = lane % rays
     x = dr.gather(mi.Vector3f, to_vector3(points), pt)
     nx = dr.gather(mi.Vector3f, to_vector3(normals), pt)
-    key = hash_u32(hash_u32(pt + hash_u32(mi.UInt32(seed) + 0x51ED27)) + k * 0x632BE5AB)
+    key = hash_u32(hash_u32(pt + hash_u32(opaque_u32(seed) + 0x51ED27)) + k * 0x632BE5AB)
     u, v = stratified(k, rays, key)
     s0, s1, s2 = (mi.Vector3f(*map(float, c)) for c in src[:3])
     if len(src) == 4:

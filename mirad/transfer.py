@@ -28,7 +28,7 @@ from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
 from .nodes import (PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
                     flat_nodes)
 from .arrays import MAX_LANES, shadow_ray_length, to_bool, to_float, to_uint, to_vector3
-from .visibility import hash_u32, shifted_hammersley, to_unit, triangle_point
+from .visibility import hash_u32, opaque_u32, shifted_hammersley, to_unit, triangle_point
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
@@ -162,7 +162,7 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     if order is not None:
         recv, src, volume = recv[order], src[order], volume[order]
     arrays = buf.arrays()
-    seed_dr = dr.opaque(mi.UInt32, seed)
+    seed_dr = opaque_u32(seed)
     # (without fast math wherever it is called: a worker's wave is bitwise the in-process one)
     with exact_arithmetic():
         for a in range(0, m, per_launch):
@@ -638,7 +638,7 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
         b = min(m, a + per_launch)
         lane = dr.arange(mi.UInt32, (b - a) * count)
         node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
-        key = hash_u32(node ^ hash_u32(mi.UInt32(seed) + 0x5BD1E995))
+        key = hash_u32(node ^ hash_u32(opaque_u32(seed) + 0x5BD1E995))
         y, n, _, _ = source_point(buf, node, lane % count, count, key)
         inside = _buried(mi_scene, y, n, offset, enclosed=False)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
@@ -669,7 +669,7 @@ def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.
             pair = to_uint(pair_of)
             s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
             r = dr.gather(mi.UInt32, to_uint(recv[a:b]), pair)
-            key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x2545F491)) + s * 0x632BE5AB)
+            key = hash_u32(hash_u32(r ^ hash_u32(opaque_u32(seed) + 0x2545F491)) + s * 0x632BE5AB)
             y, ny, _, _ = source_point(buf, s, (key + to_uint(t_of * step_of)) % SOURCE_POINTS, SOURCE_POINTS, key)
             x = dr.gather(mi.Vector3f, to_vector3(centroid[a:b]), pair)
             nx = dr.gather(mi.Vector3f, to_vector3(normal[a:b]), pair)
@@ -704,7 +704,7 @@ def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offse
             lane = dr.arange(mi.UInt32, (b - a) * ESCAPE_RAYS)
             pair, t = lane // ESCAPE_RAYS, lane % ESCAPE_RAYS
             s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
-            key = hash_u32(s * 0x9E3779B9 + mi.UInt32(seed))
+            key = hash_u32(s * 0x9E3779B9 + opaque_u32(seed))
             y, ny, _, _ = source_point(buf, s, t, ESCAPE_RAYS, key)
             # (the directions' set in another order than the points': each point its own)
             u, v = shifted_hammersley((t * 37 + 11) % ESCAPE_RAYS, ESCAPE_RAYS, hash_u32(key ^ 0x5BD1E995))

@@ -71,6 +71,13 @@ def hash_u32(x):
     return x ^ (x >> 16)
 
 
+def opaque_u32(value: int):
+    """mi.UInt32 of a Python int (mod 2^32) that enters a kernel as a parameter, not as a
+    literal: a seed, or a batch's offset. (As a literal each new value compiled its kernels
+    anew: 30-100 ms each, eight of them a solve of the 36-triangle box for each new seed.)"""
+    return dr.opaque(mi.UInt32, int(value) & 0xFFFFFFFF)
+
+
 def to_unit(x):
     """mi.UInt32 hash -> mi.Float in [0, 1)."""
     return mi.Float(x >> 8) * (1.0 / (1 << 24))
@@ -219,13 +226,13 @@ def _link_kernel(mi_scene, geo: Geometry, recv, src, vclass, n: int, seed: int):
     cls = dr.gather(mi.UInt32, class_dr, link)
 
     # --- stratified jittered sample points on receiver and source -----------------------
-    pair_key = hash_u32(hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x9E3779B9)) + s)
+    pair_key = hash_u32(hash_u32(r ^ hash_u32(opaque_u32(seed) + 0x9E3779B9)) + s)
     lane_key = hash_u32(pair_key + k * 0x632BE5AB)
     rv0, rv1, rv2, rn, rc, ra, rr = geo.gather(r)
     sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(s)
     # receiver points depend on the receiver only (not the source), so all links of a
     # receiver share them and its row sum is a mean of point row sums, each <= 1
-    recv_key = hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x7F4A7C15))
+    recv_key = hash_u32(r ^ hash_u32(opaque_u32(seed) + 0x7F4A7C15))
     ur, vr = shifted_hammersley(k, n, recv_key)
     k_src = (k * _coprime_step(n) + 3) % n
     us, vs = stratified(k_src, n, hash_u32(lane_key ^ 0x1B873593))
@@ -327,7 +334,7 @@ def _cluster_kernel(mi_scene, geo: Geometry, clusters, recv, src, n: int, seed: 
 
     # --- receiver points exactly as for element sources; source points by area ----------
     rv0, rv1, rv2, rn, rc, ra, rr = geo.gather(r)
-    recv_key = hash_u32(r ^ hash_u32(mi.UInt32(seed) + 0x7F4A7C15))
+    recv_key = hash_u32(r ^ hash_u32(opaque_u32(seed) + 0x7F4A7C15))
     ur, vr = shifted_hammersley(k, n, recv_key)
     x = triangle_point(rv0, rv1, rv2, ur, vr)
     lane_key = hash_u32(hash_u32(recv_key + c * 0x9E3779B9) + k * 0x632BE5AB)
@@ -424,7 +431,7 @@ def gather_at_points(mi_scene, points: np.ndarray, normals: np.ndarray, geo: Geo
         x = dr.gather(mi.Vector3f, p_dr, pidx)
         nx = dr.gather(mi.Vector3f, n_dr, pidx)
         sv0, sv1, sv2, sn, sc, sa, sr = geo.gather(leaf)
-        key = hash_u32(hash_u32(pidx + mi.UInt32(start) + hash_u32(mi.UInt32(seed))) + leaf * 0x632BE5AB + k)
+        key = hash_u32(hash_u32(pidx + opaque_u32(start) + hash_u32(opaque_u32(seed))) + leaf * 0x632BE5AB + k)
         # (as in the link kernel: within rounding of a leaf's plane, nothing of it is seen)
         front = dr.dot(sn, x - sv0) > in_plane
         g = dr.select(front, point_to_triangle_dr(x, nx, sv0, sv1, sv2), 0.0)
