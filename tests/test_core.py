@@ -341,20 +341,24 @@ def _floor_under_a_square_light(tmp_path, n: int, height: float, half: float) ->
 
 def test_curved_fits_follow_the_fall_off_under_a_light(tmp_path, monkeypatch):
     """A finely meshed floor under a square light: at tolerance 0.2 its face clusters take the
-    light in a few links, which the final gather fits over their points and reads at each
-    triangle. The plane through the points missed the fall-off's curvature (2.7 % per
-    triangle against the exact irradiance, above the 2.5 % the solve estimated); the
-    quadratic (``core.CURVED_FITS``, 1.2 %) must halve that and stay within the estimate."""
+    light in a few links, which the final gather fits over their points. Read from the fit at
+    each triangle, the plane through the points missed the fall-off's curvature (2.7 % per
+    triangle against the exact irradiance, above the 2.5 % the solve estimated); the quadratic
+    (``core.CURVED_FITS``, 1.2 %) must halve that and stay within the estimate. Where every
+    point saw the whole light, each triangle takes the exact form factor at its own points
+    instead (``core.EXACT_FIT_LEAVES``, the default): exact to float precision."""
     scene, exact = _floor_under_a_square_light(tmp_path, 32, 0.6, 0.25)
     loaded = mirad.load_scene(scene)
     result = {}
-    for curved in (False, True):
+    for exact_leaves, curved in ((False, False), (False, True), (True, True)):
+        monkeypatch.setattr(core, "EXACT_FIT_LEAVES", exact_leaves)
         monkeypatch.setattr(core, "CURVED_FITS", curved)
         sol = mirad.solve(loaded, tolerance=0.2, **HIER)
         h = sol.triangle_radiosity[:len(exact), 0] / 0.5
-        result[curved] = (float(np.abs(h - exact).sum() / exact.sum()), sol.stats["estimated_error"])
-    assert result[True][0] <= result[False][0] / 2, result
-    assert result[True][0] <= result[True][1], result
+        result[exact_leaves, curved] = (float(np.abs(h - exact).sum() / exact.sum()), sol.stats["estimated_error"])
+    assert result[False, True][0] <= result[False, False][0] / 2, result
+    assert result[False, True][0] <= result[False, True][1], result
+    assert result[True, True][0] <= 1e-4, result
 
 
 def test_a_refined_white_furnace_keeps_its_light():
