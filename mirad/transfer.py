@@ -245,6 +245,7 @@ class Lanes(NamedTuple):
     traced: object       # mi.Bool: a ray was traced
     v: object            # mi.Float: 1 where it arrived
     tri: object          # mi.UInt32: the triangle node the target is on
+    g_weighted: object   # mi.Float: g_volume times its point's kernel over its triangle's mean kernel
 
 
 class Aimed(NamedTuple):
@@ -258,6 +259,7 @@ class Aimed(NamedTuple):
     origin: object       # mi.Vector3f: the ray's origin, lifted off the receiver
     direction: object    # mi.Vector3f: unit direction
     length: object       # mi.Float: how far it goes (short of the lifted target)
+    g_weighted: object   # as Lanes'
 
 
 def _lanes(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: int, seed, offset: float,
@@ -333,7 +335,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return Lanes(g_exact, kernel, g_volume, traced, v, tri)
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -343,9 +345,17 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
     valid = (cos_x > 0) & (cos_y > 0) & (dist > 0)
     kernel = dr.select(valid, cos_x * cos_y / dr.maximum(dist2, _TINY), 0.0)
     g_volume = volume_sample(x, nx, ny, tri_corners, per_area, planar, offset)
+    g_weighted = g_volume
+    if KERNEL_WEIGHTED_VOLUMES:
+        # (the sample's point stands for its triangle by its kernel: the triangle's form factor
+        # is its mean kernel times its area, and the point's kernel over that weighs its ray as
+        # the planar sources' rays are weighed, ``_sums``)
+        f_tri = g_volume / dr.maximum(per_area, _TINY)
+        mean_kernel = f_tri * dr.pi / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
+        g_weighted = dr.select(f_tri > _TINY, g_volume * kernel / dr.maximum(mean_kernel, _TINY), g_volume)
     traced = valid & ((g_exact > 0) | ~planar)
     return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
-                 shadow_ray_length(dist, offset))
+                 shadow_ray_length(dist, offset), g_weighted)
 
 
 def _shoot(mi_scene, aimed: Aimed) -> Lanes:
@@ -353,7 +363,7 @@ def _shoot(mi_scene, aimed: Aimed) -> Lanes:
     ray = mi.Ray3f(aimed.origin, aimed.direction)
     ray.maxt = aimed.length
     v = dr.select(aimed.traced, dr.select(mi_scene.ray_test(ray, aimed.traced), 0.0, 1.0), 0.0)
-    return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri)
+    return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri, aimed.g_weighted)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
@@ -383,10 +393,23 @@ def _wave(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, seed, r_
     return _sampled_sums(r_count, point_lane, lanes, samples)
 
 
+def _volume_norm(g_volume, g_weighted, per_link: int):
+    """mi.Float per link: its volume samples' summed transfer over their summed kernel-weighted
+    transfer (1 where none has weight)."""
+    plain, weighted = dr.block_sum(g_volume, per_link), dr.block_sum(g_weighted, per_link)
+    return dr.select(weighted > 0, plain / dr.select(weighted > 0, weighted, 1.0), 1.0)
+
+
 def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tuple:
     """``_sums``, and with ``samples`` the volume-cluster samples' transfer and triangle node
     per lane (evaluated with the sums: kept unevaluated, their rays would be traced again)."""
-    sampled = (lanes.g_volume * lanes.v, lanes.tri) if samples else ()
+    if samples:
+        per_link = RECEIVER_POINTS * r_count
+        norm = dr.gather(mi.Float, _volume_norm(lanes.g_volume, lanes.g_weighted, per_link),
+                         dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link)
+        sampled = (lanes.g_weighted * lanes.v * norm, lanes.tri)
+    else:
+        sampled = ()
     return _sums(r_count, point_lane, lanes, *sampled) + sampled
 
 
@@ -396,6 +419,9 @@ def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tupl
 #: (rays per point, ray offset, the flags) and replayed for any number of links; periodic
 #: scenes' waves are traced as before.
 FREEZE_WAVES = True
+#: Whether a volume cluster's samples weigh their rays' visibility by their point's kernel over
+#: their triangle's mean kernel (``_aim``, ``_sums``), as the planar sources' rays are weighed.
+KERNEL_WEIGHTED_VOLUMES = True
 #: Most lanes in one frozen wave: its aimed rays are kept between its two halves (about 50 B
 #: a lane), so its launches are smaller than MAX_LANES (a fine Cornell box's peak memory rose
 #: by 230 MB with waves of MAX_LANES).
@@ -428,11 +454,14 @@ def _sums(r_count: int, point_lane, lanes: Lanes, *also) -> tuple:
     evaluated. ``also``: further per-lane values evaluated in the same kernel."""
     k = RECEIVER_POINTS
     kernel, g_volume, v = lanes.kernel, lanes.g_volume, lanes.v
-    summed = [lanes.g_exact, kernel, kernel * v, g_volume, g_volume * v, g_volume * g_volume * v,
-              dr.select(lanes.traced, 1.0, 0.0)]
+    summed = [lanes.g_exact, kernel, kernel * v, g_volume, lanes.g_weighted * v, g_volume * g_volume * v,
+              dr.select(lanes.traced, 1.0, 0.0), lanes.g_weighted]
     dr.eval(*summed, *also)
     g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in summed[:6])
     n_traced = dr.sum(summed[6])
+    # (a volume cluster's samples weighed by their kernels, normed over the whole link so that
+    # their weights mean 1: the link's kernel-weighted visibility, as the planar sources' ratio)
+    g_vol_v = g_vol_v * dr.gather(mi.Float, _volume_norm(g_volume, summed[7], k * r_count), point_lane // k)
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
     # for the transfer and at each point for its spread; a point none of whose rays could be
     # aimed (grazing) takes the link's
