@@ -2159,8 +2159,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # variance of its error: visibility noise, the shadow's quadrature, fit residuals
     stay_node, stay_src, stay_ff, stay_var, stay_rays, stay_row = _columns(stay)
     recv = np.concatenate([pair_node, stay_node] + [leaves[p[0]] for p in smooth_parts])
-    var_node = np.bincount(recv, weights=np.concatenate([g_var + g_shadow, stay_var] + [p[3] for p in smooth_parts]),
-                           minlength=n)
+    pair_var = np.concatenate([g_var + g_shadow, stay_var])     # (the pairs', in on_node's order below)
+    var_node = np.bincount(recv, weights=np.concatenate([pair_var] + [p[3] for p in smooth_parts]), minlength=n)
     # the pairs, those on the leaves split above included, each evaluated on its node
     on_node, from_src, node_ff = (np.concatenate(a) for a in ((pair_node, stay_node), (pair_src, stay_src),
                                                                (g_ff, stay_ff)))
@@ -2238,7 +2238,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         for i, (a, g) in enumerate(((links.recv, on_node), (links.src, from_src), (links.ff, node_ff))))
     # (which of them no ray found anything in front of: the passes' links whose sample rays all
     # arrived, the pairs without visibility noise, and the fits, whose points saw the whole source)
-    item_seen = np.concatenate([links.ff[keep] >= links.ff_unocc[keep] * (1.0 - 1e-6), np.concatenate([g_var + g_shadow, stay_var]) == 0] +
+    item_seen = np.concatenate([visible_fraction(links.ff[keep], links.ff_unocc[keep]) >= 1.0 - 1e-6, pair_var == 0] +
                                [np.ones(len(p[0]), bool) for p in fit_items])
     fixed = None
     if SPREAD_OF_EVERY_TRANSFER:

@@ -347,12 +347,10 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
     g_volume = volume_sample(x, nx, ny, tri_corners, per_area, planar, offset)
     g_weighted = g_volume
     if KERNEL_WEIGHTED_VOLUMES:
-        # (the sample's point stands for its triangle by its kernel: the triangle's form factor
-        # is its mean kernel times its area, and the point's kernel over that weighs its ray as
-        # the planar sources' rays are weighed, ``_sums``)
-        f_tri = g_volume / dr.maximum(per_area, _TINY)
-        mean_kernel = f_tri * dr.pi / dr.maximum(dr.gather(mi.Float, buf.area, tri), _TINY)
-        g_weighted = dr.select(f_tri > _TINY, g_volume * kernel / dr.maximum(mean_kernel, _TINY), g_volume)
+        # (the sample times its point's kernel over its triangle's mean kernel, pi F_tri / A_tri:
+        # the point kernel's own estimate A_s cos cos / (pi r^2) over the draw's probability. Its
+        # ray is weighed so as the planar sources' rays are, ``_sums``)
+        g_weighted = dr.select(g_volume > 0, kernel * (area_s * drawn / dr.pi), 0.0)
     traced = valid & ((g_exact > 0) | ~planar)
     return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
                  shadow_ray_length(dist, offset), g_weighted)
@@ -403,14 +401,14 @@ def _volume_norm(g_volume, g_weighted, per_link: int):
 def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tuple:
     """``_sums``, and with ``samples`` the volume-cluster samples' transfer and triangle node
     per lane (evaluated with the sums: kept unevaluated, their rays would be traced again)."""
+    per_link = RECEIVER_POINTS * r_count
+    norm = _volume_norm(lanes.g_volume, lanes.g_weighted, per_link)
     if samples:
-        per_link = RECEIVER_POINTS * r_count
-        norm = dr.gather(mi.Float, _volume_norm(lanes.g_volume, lanes.g_weighted, per_link),
-                         dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link)
-        sampled = (lanes.g_weighted * lanes.v * norm, lanes.tri)
+        lane_norm = dr.gather(mi.Float, norm, dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link)
+        sampled = (lanes.g_weighted * lanes.v * lane_norm, lanes.tri)
     else:
         sampled = ()
-    return _sums(r_count, point_lane, lanes, *sampled) + sampled
+    return _sums(r_count, point_lane, lanes, norm, *sampled) + sampled
 
 
 #: Whether ``evaluate`` replays its waves' recorded kernels (``dr.freeze``) rather than tracing
@@ -448,20 +446,23 @@ def wave_recordings() -> int:
     return _frozen_aim.n_recordings + _frozen_sums.n_recordings
 
 
-def _sums(r_count: int, point_lane, lanes: Lanes, *also) -> tuple:
+def _sums(r_count: int, point_lane, lanes: Lanes, volume_norm, *also) -> tuple:
     """The wave's per-ray lanes (``_lanes``) summed per receiver point and combined there, in
     Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,) and the rays traced (mi.Float (1,)),
-    evaluated. ``also``: further per-lane values evaluated in the same kernel."""
+    evaluated. ``volume_norm``: per link, its volume samples' summed transfer over their summed
+    kernel-weighted one (``_volume_norm``); ``also``: further per-lane values evaluated in the same
+    kernel."""
     k = RECEIVER_POINTS
     kernel, g_volume, v = lanes.kernel, lanes.g_volume, lanes.v
     summed = [lanes.g_exact, kernel, kernel * v, g_volume, lanes.g_weighted * v, g_volume * g_volume * v,
-              dr.select(lanes.traced, 1.0, 0.0), lanes.g_weighted]
+              dr.select(lanes.traced, 1.0, 0.0)]
     dr.eval(*summed, *also)
     g_e, k_s, kv_s, g_vol, g_vol_v, g_vol_sq = (dr.block_sum(a, r_count) for a in summed[:6])
     n_traced = dr.sum(summed[6])
     # (a volume cluster's samples weighed by their kernels, normed over the whole link so that
-    # their weights mean 1: the link's kernel-weighted visibility, as the planar sources' ratio)
-    g_vol_v = g_vol_v * dr.gather(mi.Float, _volume_norm(g_volume, summed[7], k * r_count), point_lane // k)
+    # their weights mean 1 (``volume_norm``, per link): the link's kernel-weighted visibility, as
+    # the planar sources' ratio)
+    g_vol_v = g_vol_v * dr.gather(mi.Float, volume_norm, point_lane // k)
     # visibility: the kernel-weighted fraction of the rays that arrive, over the whole link
     # for the transfer and at each point for its spread; a point none of whose rays could be
     # aimed (grazing) takes the link's
