@@ -405,7 +405,10 @@ def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tupl
     norm = _volume_norm(lanes.g_volume, lanes.g_weighted, per_link)
     if samples:
         lane_norm = dr.gather(mi.Float, norm, dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link)
-        sampled = (lanes.g_weighted * lanes.v * lane_norm, lanes.tri)
+        # (a planar source's lane: its point's form factor times its ray's kernel where the ray
+        # arrived, a share of the link's transfer that the caller norms over the link; a volume
+        # cluster's lanes have no exact form factor, a planar source's no volume sample)
+        sampled = (lanes.g_weighted * lanes.v * lane_norm + lanes.g_exact * lanes.kernel * lanes.v, lanes.tri)
     else:
         sampled = ()
     return _sums(r_count, point_lane, lanes, norm, *sampled) + sampled

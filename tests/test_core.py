@@ -745,17 +745,24 @@ def test_a_closed_furnished_room_absorbs_the_power_it_emits(monkeypatch):
     underside read the floor's form factor as 0 where it is 0.80, and at tolerance 0.15 the room
     absorbed 0.75 % less than it emits (red). Counting the noise of such transfers, 0.36 %
     (0.13 % at 0.1), and with the volume clusters' samples weighed by their kernels
-    (``transfer.KERNEL_WEIGHTED_VOLUMES``) 0.09 %; within half a percent in every channel."""
+    (``transfer.KERNEL_WEIGHTED_VOLUMES``) 0.09 %. The face clusters' partly hidden pairs taking
+    their triangles' own radiosity (``core.FACE_SAMPLES``) then showed the fitted leaves' checks
+    taking too much (the room absorbed 0.8 % more than it emits, -0.8 % lost), until those were
+    held to a bias's share (``core.check_rays``, ``CHECK_AS_BIAS``): 0.04-0.31 %. Within half a
+    percent in every channel; with the checks held to the noise's allowance, not."""
     from mirad import export, refine
 
     scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
     emitted = (scene.tri_area[:, None] * scene.tri_emission).sum(axis=0)
     lost = {}
-    for certain in (True, False):
-        monkeypatch.setattr(refine, "BLOCKED_NOT_CERTAIN", not certain)
+    for mended in ("none undone", "blocked taken as certain", "checks held as noise"):
+        monkeypatch.setattr(refine, "BLOCKED_NOT_CERTAIN", mended != "blocked taken as certain")
+        monkeypatch.setattr(core, "CHECK_AS_BIAS", mended != "checks held as noise")
         sol = mirad.solve(scene, tolerance=0.15, seed=0, **HIER)
-        lost[certain] = 1.0 - export.triangle_table(sol)["absorbed"].sum(axis=0) / emitted
-    assert np.abs(lost[False]).max() < 0.005 < np.abs(lost[True]).max(), lost
+        lost[mended] = 1.0 - export.triangle_table(sol)["absorbed"].sum(axis=0) / emitted
+    assert np.abs(lost["none undone"]).max() < 0.005 < np.abs(lost["checks held as noise"]).max(), lost
+    # (taken as certain, the blocked transfers lose light in every channel: 0.3-0.5 % more)
+    assert np.all(lost["blocked taken as certain"] > lost["none undone"] + 0.002), lost
 
 
 @pytest.mark.parametrize("mirrored", ["receiver", "light", "both"])
@@ -1446,21 +1453,22 @@ def _visible_light(x: np.ndarray, light: tuple, plate: tuple, z_light: float, z_
 def test_check_rays_are_the_fewest_that_bound_a_penumbras_excess():
     """``core.check_rays``: k rays a leaf, the fewest for which the largest expected excess of a
     leaf that all k rays passed, max over p of p^k (1 - p) F B (at p = k / (k + 1)), is within the
-    pair's allowance GATHER_SHARE tol sqrt(H F B), or SOURCE_POINTS where that is not enough; at
-    least one. Over transfers from a thousandth of the leaf's light to all of it."""
+    pair's share of the tolerance in proportion to its light, GATHER_SHARE tol F B (a bias, of one
+    sign: it adds up over transfers and leaves), or SOURCE_POINTS where that is not enough; at
+    least one. Over transfers from a thousandth of their sources' light to all of it."""
     rng = np.random.default_rng(3)
     m = 2000
-    h = 10.0 ** rng.uniform(-3, 3, m)
-    fb = h * 10.0 ** rng.uniform(-3, 0, m)
+    fb = 10.0 ** rng.uniform(-3, 3, m)
     b = 10.0 ** rng.uniform(-2, 2, m)
-    tol = 10.0 ** rng.uniform(-2.5, -0.3, m)
+    tol = 10.0 ** rng.uniform(-1.5, -0.3, m)
+    h = fb * 10.0 ** rng.uniform(0, 3, m)
     k = np.concatenate([core.check_rays(fb[i:i + 1] / b[i], b[i:i + 1], h[i:i + 1], float(tol[i])) for i in range(m)])
 
     def excess(rays):
         p = rays / (rays + 1.0)
         return p ** rays * (1.0 - p) * fb
 
-    allowed = core.GATHER_SHARE * tol * np.sqrt(h * fb)
+    allowed = core.GATHER_SHARE * tol * fb
     assert k.min() >= 1 and k.max() <= core.SOURCE_POINTS
     assert np.all((excess(k) <= allowed * (1 + 1e-9)) | (k == core.SOURCE_POINTS))
     # (and the fewest: one ray fewer would not do, where there are more than one)
