@@ -1303,10 +1303,10 @@ REGATHER_LEAF_SHADOWS = True
 #: of a wall seen from near a corner falls off faster than plane or quadratic follow (the rows
 #: along concave edges read about +5 % at every tolerance). Fine box at 0.1 1.052 -> 0.894 % per
 #: seed, tiny-bright room at 0.05 0.598 -> 0.481 %, for the same time. (Fits over partly
-#: visible sources keep the field: their visibility comes from the fit.) Off until the furnished
-#: room's low bias is found: the fits' excess over its walls (+0.4 %) hid it, and without it the
-#: room absorbs 0.66 / 0.78 % (red, seeds 0 / 1) less than it emits at 0.15, over the 0.5 % its
-#: energy test allows (0.36 % with the fits).
+#: visible sources keep the field: their visibility comes from the fit.) Built off on 2026-11-28:
+#: the fits' excess over the furnished room's walls (+0.4 %) hid the room's low biases, and
+#: without it the room absorbed 0.66 / 0.78 % (red, seeds 0 / 1) less than it emits at 0.15.
+#: On since 2026-11-29, with those found (``transfer.KERNEL_WEIGHTED_VOLUMES``, FACE_SAMPLES).
 EXACT_FIT_LEAVES = True
 #: Whether each leaf below a link fitted from one ray a point checks with rays of its own
 #: (``check_rays``) that no shadow the points missed lies on it (``transfer.leaves_blocked``).
