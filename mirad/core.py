@@ -830,22 +830,17 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
             state.rays += pt.rays
             out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
             if found is not None:
-                keep = _sampled_links(state, src[idx], pt)[pt.samples[0]]
+                keep = _sampled_links(state, src[idx])[pt.samples[0]]
                 found.append((idx[pt.samples[0][keep]],) + tuple(a[keep] for a in pt.samples[1:]))
     return out[0], out[1], out[2], seconds, out[3]
 
 
-def _sampled_links(state: State, src: np.ndarray, pt) -> np.ndarray:
-    """(M,) bool: the links of a wave (sources ``src`` (M,), its ``transfer.PointTransfers``
-    ``pt``) whose arriving samples the gather keeps (``SampleLog``): a volume cluster's, and
-    with FACE_SAMPLES a face cluster's that some of its rays found hidden."""
+def _sampled_links(state: State, src: np.ndarray) -> np.ndarray:
+    """(M,) bool: the links of a wave (sources ``src`` (M,)) whose arriving samples the gather
+    keeps (``SampleLog``): a volume cluster's, and with FACE_SAMPLES a face cluster's (the wave
+    gives those only where some of the link's rays were blocked, ``transfer.evaluate``)."""
     kind = state.nodes.kind[src]
-    keep = kind == VOLUME
-    if FACE_SAMPLES:
-        # (a planar link's visibility is one kernel-weighted fraction over its points: any
-        # point's transfer below its unoccluded one says that some ray was blocked)
-        keep |= (kind == FACE) & (pt.gv < pt.g * (1.0 - 1e-6)).any(axis=1) & (pt.gv > 0).any(axis=1)
-    return keep
+    return (kind == VOLUME) | ((kind == FACE) & FACE_SAMPLES)
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray,

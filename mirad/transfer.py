@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
-from .nodes import (PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
+from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
                     flat_nodes)
 from .arrays import MAX_LANES, shadow_ray_length, to_bool, to_float, to_uint, to_vector3
 from .visibility import hash_u32, opaque_u32, shifted_hammersley, to_unit, triangle_point
@@ -101,7 +101,9 @@ class PointTransfers:
     #: with ``evaluate(..., samples=True)``: the arriving samples of volume-cluster sources
     #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,); ``_arriving``): a
     #: link's transfer is sum_i w_i gv_i with gv_i the mean of point i's R samples, so its
-    #: samples over R split it by the triangle each came from (``source_point``)
+    #: samples over R split it by the triangle each came from (``source_point``). And those of
+    #: face clusters some of whose rays were blocked: each its point's exact form factor times
+    #: its ray's kernel, shares of the link's transfer that are not normed to it
     samples: tuple | None = None
 
 
@@ -145,7 +147,7 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     shadow rays each; ``offset`` lifts ray ends off surfaces (metres). ``periodic``: a
     ``periodic.PeriodicBox`` (the link then sums the source's nearest lattice images, with
     wrapped shadow rays; ``periodic.image_visibility``), or None. With ``samples``, also the
-    volume clusters' arriving samples (``PointTransfers.samples``). With ``spread``, each of a
+    volume clusters' arriving samples and the partly hidden face clusters' (``PointTransfers.samples``). With ``spread``, each of a
     link's K R rays aims at a point of its own on the source (``ray_target``)."""
     m = len(recv)
     k = RECEIVER_POINTS
@@ -246,6 +248,7 @@ class Lanes(NamedTuple):
     v: object            # mi.Float: 1 where it arrived
     tri: object          # mi.UInt32: the triangle node the target is on
     g_weighted: object   # mi.Float: g_volume times its point's kernel over its triangle's mean kernel
+    g_share: object      # mi.Float: a face cluster's g_exact times the ray's kernel (its share, before norming), else 0
 
 
 class Aimed(NamedTuple):
@@ -260,6 +263,7 @@ class Aimed(NamedTuple):
     direction: object    # mi.Vector3f: unit direction
     length: object       # mi.Float: how far it goes (short of the lifted target)
     g_weighted: object   # as Lanes'
+    g_share: object      # as Lanes'
 
 
 def _lanes(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: int, seed, offset: float,
@@ -335,7 +339,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume)
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume, dr.select(kind == FACE, g_exact * kernel, 0.0))
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -353,7 +357,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         g_weighted = dr.select(g_volume > 0, kernel * (area_s * drawn / dr.pi), 0.0)
     traced = valid & ((g_exact > 0) | ~planar)
     return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
-                 shadow_ray_length(dist, offset), g_weighted)
+                 shadow_ray_length(dist, offset), g_weighted, dr.select(kind == FACE, g_exact * kernel, 0.0))
 
 
 def _shoot(mi_scene, aimed: Aimed) -> Lanes:
@@ -361,7 +365,8 @@ def _shoot(mi_scene, aimed: Aimed) -> Lanes:
     ray = mi.Ray3f(aimed.origin, aimed.direction)
     ray.maxt = aimed.length
     v = dr.select(aimed.traced, dr.select(mi_scene.ray_test(ray, aimed.traced), 0.0, 1.0), 0.0)
-    return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri, aimed.g_weighted)
+    return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri, aimed.g_weighted,
+                 aimed.g_share)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
@@ -377,8 +382,8 @@ def _wave(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, seed, r_
           periodic, weigh_faces: bool, spread: bool, samples: bool, frozen: bool) -> tuple:
     """One launch of ``evaluate``: the lanes of links recv_dr <- src_dr (``_lanes``) summed per
     receiver point (``_sums``), in Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,), the
-    rays traced (mi.Float (1,)) and, with ``samples``, the volume-cluster samples' transfer and
-    triangle node per lane (for ``_arriving``). ``frozen`` (FREEZE_WAVES, not periodic): the
+    rays traced (mi.Float (1,)) and, with ``samples``, the volume-cluster samples' transfer (and
+    the partly hidden face clusters' shares) and triangle node per lane (for ``_arriving``). ``frozen`` (FREEZE_WAVES, not periodic): the
     rays' aim and the sums replay recorded kernels (``_frozen_aim``, ``_frozen_sums``); only the
     rays are traced as they come (a frozen function takes the scene's every array as an input)."""
     if frozen:
@@ -399,16 +404,19 @@ def _volume_norm(g_volume, g_weighted, per_link: int):
 
 
 def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tuple:
-    """``_sums``, and with ``samples`` the volume-cluster samples' transfer and triangle node
+    """``_sums``, and with ``samples`` the volume-cluster samples' transfer (and the partly hidden
+    face clusters' shares, ``PointTransfers.samples``) and triangle node
     per lane (evaluated with the sums: kept unevaluated, their rays would be traced again)."""
     per_link = RECEIVER_POINTS * r_count
     norm = _volume_norm(lanes.g_volume, lanes.g_weighted, per_link)
     if samples:
-        lane_norm = dr.gather(mi.Float, norm, dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link)
-        # (a planar source's lane: its point's form factor times its ray's kernel where the ray
-        # arrived, a share of the link's transfer that the caller norms over the link; a volume
-        # cluster's lanes have no exact form factor, a planar source's no volume sample)
-        sampled = (lanes.g_weighted * lanes.v * lane_norm + lanes.g_exact * lanes.kernel * lanes.v, lanes.tri)
+        lane_link = dr.arange(mi.UInt32, dr.width(lanes.v)) // per_link
+        lane_norm = dr.gather(mi.Float, norm, lane_link)
+        # (a face cluster's lane where its ray arrived: its share of the link's transfer, which the
+        # caller norms over the link; only where some of the link's rays were blocked)
+        hidden = dr.block_sum(lanes.g_share * lanes.v, per_link) < dr.block_sum(lanes.g_share, per_link)
+        face = dr.select(dr.gather(mi.Bool, hidden, lane_link), lanes.g_share * lanes.v, 0.0)
+        sampled = (lanes.g_weighted * lanes.v * lane_norm + face, lanes.tri)
     else:
         sampled = ()
     return _sums(r_count, point_lane, lanes, norm, *sampled) + sampled
