@@ -1318,10 +1318,10 @@ def check_rays(transfer: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
 
     The fit was drawn from points that all saw the source (transfer ``transfer`` (M,), the fit's
     form factor at the receiver's centre; ``b_src`` (M,) its radiosity, ``h_recv`` (M,) the leaf's
-    whole irradiance, W/m^2). A leaf that sees a
-    share p of the source passes k rays with probability p^k and then takes the whole transfer
-    F b, (1 - p) F b too much: its expected excess p^k (1 - p) F b is at most
-    k^k / (k + 1)^(k + 1) F b (at p = k / (k + 1); about F b / (e (k + 1))). The excess is a
+    whole irradiance, W/m^2). A leaf that sees a share p of the source passes k rays with
+    probability p^k and then takes the whole transfer F b, (1 - p) F b too much: its expected
+    excess p^k (1 - p) F b is at most k^k / (k + 1)^(k + 1) F b (at p = k / (k + 1); about
+    F b / (e (k + 1))). The excess is a
     bias, of one sign on every leaf and transfer: it adds up over a leaf's transfers and over the
     leaves, where noise adds in quadrature, so it is held to the pair's share of the tolerance
     in proportion to its light, GATHER_SHARE tol F b (not the noise's allowance
@@ -2211,7 +2211,6 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             sampled = tuple(a[keep_sample] for a in sampled)
             by_triangle = by_triangle[~lone]
         by_mean[by_triangle] = False
-        face_sampled = np.zeros(len(on_node), bool)
         face_sampled[by_triangle] = nodes.kind[from_src[by_triangle]] == FACE
         # (one entry per receiver and triangle: a pair's samples share their few triangles)
         by_entry = sp.csr_matrix((sampled[2].astype(np.float64), (sampled[0], sampled[1])), shape=(n, n))

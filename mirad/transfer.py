@@ -147,8 +147,9 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     shadow rays each; ``offset`` lifts ray ends off surfaces (metres). ``periodic``: a
     ``periodic.PeriodicBox`` (the link then sums the source's nearest lattice images, with
     wrapped shadow rays; ``periodic.image_visibility``), or None. With ``samples``, also the
-    volume clusters' arriving samples and the partly hidden face clusters' (``PointTransfers.samples``). With ``spread``, each of a
-    link's K R rays aims at a point of its own on the source (``ray_target``)."""
+    volume clusters' arriving samples and the partly hidden face clusters' shares
+    (``PointTransfers.samples``). With ``spread``, each of a link's K R rays aims at a point of
+    its own on the source (``ray_target``)."""
     m = len(recv)
     k = RECEIVER_POINTS
     g, gv, gp, g2 = (np.zeros((m, k), np.float32) for _ in range(4))
@@ -339,7 +340,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume, dr.select(kind == FACE, g_exact * kernel, 0.0))
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume, _face_share(kind, g_exact, kernel))
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -357,7 +358,13 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         g_weighted = dr.select(g_volume > 0, kernel * (area_s * drawn / dr.pi), 0.0)
     traced = valid & ((g_exact > 0) | ~planar)
     return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
-                 shadow_ray_length(dist, offset), g_weighted, dr.select(kind == FACE, g_exact * kernel, 0.0))
+                 shadow_ray_length(dist, offset), g_weighted, _face_share(kind, g_exact, kernel))
+
+
+def _face_share(kind, g_exact, kernel):
+    """mi.Float per lane: a face cluster's share of its link's transfer before norming, its
+    point's exact form factor times its ray's kernel (``Lanes.g_share``); 0 for other sources."""
+    return dr.select(kind == FACE, g_exact * kernel, 0.0)
 
 
 def _shoot(mi_scene, aimed: Aimed) -> Lanes:
@@ -383,9 +390,10 @@ def _wave(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, seed, r_
     """One launch of ``evaluate``: the lanes of links recv_dr <- src_dr (``_lanes``) summed per
     receiver point (``_sums``), in Dr.Jit: (g, gv, gv_point, gv_square) mi.Float (M K,), the
     rays traced (mi.Float (1,)) and, with ``samples``, the volume-cluster samples' transfer (and
-    the partly hidden face clusters' shares) and triangle node per lane (for ``_arriving``). ``frozen`` (FREEZE_WAVES, not periodic): the
-    rays' aim and the sums replay recorded kernels (``_frozen_aim``, ``_frozen_sums``); only the
-    rays are traced as they come (a frozen function takes the scene's every array as an input)."""
+    the partly hidden face clusters' shares) and triangle node per lane (for ``_arriving``).
+    ``frozen`` (FREEZE_WAVES, not periodic): the rays' aim and the sums replay recorded kernels
+    (``_frozen_aim``, ``_frozen_sums``); only the rays are traced as they come (a frozen function
+    takes the scene's every array as an input)."""
     if frozen:
         aimed = _frozen_aim(None, buf, recv_dr, src_dr, lane, point_lane, r_count, seed, offset,
                             weigh_faces=weigh_faces, spread=spread)
