@@ -1306,12 +1306,13 @@ EXACT_FIT_LEAVES = True
 #: Whether each leaf below a link fitted from one ray a point checks with rays of its own
 #: (``check_rays``) that no shadow the points missed lies on it (``transfer.leaves_blocked``).
 CHECK_FITTED_SHADOWS = True
-#: Whether ``check_rays`` holds the checks' expected excess to the pair's share of the tolerance
-#: in proportion to its light, as a bias (True), or to the noise's allowance (``gather_allowance``).
+#: Whether ``check_rays`` holds the checks' expected excesses on a leaf to its share of the
+#: tolerance together, as biases (True), or each to one pair's noise allowance (``gather_allowance``).
 CHECK_AS_BIAS = True
 
 
-def check_rays(transfer: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tolerance: float) -> np.ndarray:
+def check_rays(transfer: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tolerance: float,
+               sharing: np.ndarray | float = 1.0) -> np.ndarray:
     """(M,) shadow rays with which a leaf below a link fitted from one ray a point checks that no
     shadow lies on it (``transfer.leaves_blocked``): the fewest for which what a leaf in a penumbra
     that every ray missed takes too much stays within its share of the tolerance.
@@ -1321,20 +1322,24 @@ def check_rays(transfer: np.ndarray, b_src: np.ndarray, h_recv: np.ndarray, tole
     whole irradiance, W/m^2). A leaf that sees a share p of the source passes k rays with
     probability p^k and then takes the whole transfer F b, (1 - p) F b too much: its expected
     excess p^k (1 - p) F b is at most k^k / (k + 1)^(k + 1) F b (at p = k / (k + 1); about
-    F b / (e (k + 1))). The excess is a
-    bias, of one sign on every leaf and transfer: it adds up over a leaf's transfers and over the
-    leaves, where noise adds in quadrature, so it is held to the pair's share of the tolerance
-    in proportion to its light, GATHER_SHARE tol F b (not the noise's allowance
-    ``gather_allowance``, GATHER_SHARE tol sqrt(h F b), which lets a small transfer err by much
-    more than its own share), at most SOURCE_POINTS, the source's stratified points that the
-    rays aim at. (With one ray the fits' excess was a bias: on the furnished room at 0.15 the
+    F b / (e (k + 1))). The excess is a bias, of one sign on every leaf and transfer: the
+    excesses of a leaf's transfers add up, where noise adds in quadrature, and together they are
+    to stay within GATHER_SHARE tol h. Each transfer is allowed GATHER_SHARE tol sqrt(h F b / n),
+    n (``sharing`` (M,)) the most transfers that share the leaf's checks: their sum is then
+    within GATHER_SHARE tol h for any split of h among them (Cauchy-Schwarz: the sum of
+    sqrt(F_l b_l) is at most sqrt(n h)), and a transfer's rays grow with its light (k + 1 about
+    sqrt(n F b / h) / (e GATHER_SHARE tol), the fewest rays in all for that bound). At most
+    SOURCE_POINTS, the source's stratified points that the rays aim at. (Until 2026-11-29 n was
+    taken as 1, the allowance of one pair's noise, ``gather_allowance``; with many fits on a leaf
+    their excesses summed to sqrt(n) times the budget: the furnished room's ceiling took 2 % more
+    of the floor than it sends, and once the room's low biases were mended it absorbed 0.7 % more
+    power than it emits. With one ray the fits' excess was a bias too: on the room at 0.15 the
     9,019 fitted leaves that 16 rays found partly hidden had taken 25 % more than their own
-    points measure; with the noise's allowance the room's leaves still took 2 % more of the floor
-    than it sends them, and the room absorbed 0.7 % more power than it emits.)"""
+    points measure.)"""
     k = np.arange(1, SOURCE_POINTS + 1, dtype=np.float64)
     worst = k ** k / (k + 1.0) ** (k + 1.0)              # (SOURCE_POINTS,) decreasing
     fb = np.maximum(transfer * b_src, 0.0)
-    share = 1.0 if CHECK_AS_BIAS else np.sqrt(np.maximum(h_recv, 0.0) / np.maximum(fb, 1e-300))
+    share = np.sqrt(np.maximum(h_recv, 0.0) / np.maximum((sharing if CHECK_AS_BIAS else 1.0) * fb, 1e-300))
     # (a fit that brings nothing can bring nothing too much: one ray)
     room = np.where(fb > 0, GATHER_SHARE * tolerance * share, np.inf)
     # (the first k whose worst excess fits: worst is decreasing, so -worst is sorted)
@@ -1895,8 +1900,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # The tolerance is relative to all the light a receiver gets: an allowance taken over its
     # links' share alone held a sunlit leaf's gather to a fraction of it
     b_src = channel_max(solved.b_node)
-    h_node = ancestor_matrix(nodes, np.arange(n)) @ (links.matrix(n) @ b_src) + \
-        direct_node_irradiance(state, below, leaves)
+    above = ancestor_matrix(nodes, np.arange(n))
+    h_node = above @ (links.matrix(n) @ b_src) + direct_node_irradiance(state, below, leaves)
+    # (how many of the passes' links each node takes, its own and its ancestors': at most so
+    # many fits share a leaf's checks, ``check_rays``)
+    links_above = above @ np.bincount(links.recv, minlength=n).astype(np.float64)
     on_inner = np.flatnonzero(inner[links.recv])
     # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
     # gather's noise is), the others one
@@ -1990,7 +1998,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # ray arrived: rays from its centroid to the source say so, ``check_rays`` of them)
         if CHECK_FITTED_SHADOWS:
             one_ray = np.flatnonzero(~whole[k] & ~across)
-            checks = check_rays(a[k[one_ray]], b_src[src[k[one_ray]]], h_node[leaves[leaf[one_ray]]], tol)
+            checks = check_rays(a[k[one_ray]], b_src[src[k[one_ray]]], h_node[leaves[leaf[one_ray]]], tol,
+                                links_above[leaves[leaf[one_ray]]])
             checked = leaves[leaf[one_ray]]
             across[one_ray] = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf[one_ray]],
                                              nodes.normal[checked].astype(np.float64), checked, src[k[one_ray]],
