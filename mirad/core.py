@@ -830,17 +830,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
             state.rays += pt.rays
             out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
             if found is not None:
-                keep = _sampled_links(state, src[idx])[pt.samples[0]]
-                found.append((idx[pt.samples[0][keep]],) + tuple(a[keep] for a in pt.samples[1:]))
+                found.append((idx[pt.samples[0]],) + pt.samples[1:])
     return out[0], out[1], out[2], seconds, out[3]
-
-
-def _sampled_links(state: State, src: np.ndarray) -> np.ndarray:
-    """(M,) bool: the links of a wave (sources ``src`` (M,)) whose arriving samples the gather
-    keeps (``SampleLog``): a volume cluster's, and with FACE_SAMPLES a face cluster's (the wave
-    gives those only where some of the link's rays were blocked, ``transfer.evaluate``)."""
-    kind = state.nodes.kind[src]
-    return (kind == VOLUME) | ((kind == FACE) & FACE_SAMPLES)
 
 
 def _evaluate_pairs(state: State, solved: Solved, patch: np.ndarray, src: np.ndarray, rays: np.ndarray,
@@ -2009,23 +2000,30 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
             leaf, owner, k = leaf[~across], owner[~across], k[~across]
         # (a leaf's buried part, inside closed geometry, gets no light)
-        field = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
-        if CURVED_FITS:
-            plane = a[ok][:, None] + np.einsum("mc,mkc->mk", grad[ok], nodes.recv_pts[recv[ok]] - x0[ok][:, None])
-            field = curved_field(nodes, recv[ok], gv[ok].astype(np.float64), plane, owner, centroid[leaf],
-                                 nodes.area[leaves[leaf]], field)
-        value = field * (1.0 - state.buried[leaves[leaf]])
-        # (and the fit's plane at the leaf's own points: its spread over them is part of the
-        # leaf's light that the sources' gradients read, ``linear_sources``)
-        at_points = value[:, None] + np.einsum("mc,mkc->mk", grad[k], nodes.recv_pts[leaves[leaf]] -
-                                               centroid[leaf][:, None]) * (1.0 - state.buried[leaves[leaf]])[:, None]
-        if EXACT_FIT_LEAVES and state.periodic is None:
-            # (where every point of the receiver saw the whole source, each leaf takes the exact
-            # unoccluded form factor at its own points: the fit decided the leaf is in sight;
-            # the kernel need not come from the fit as well)
-            seen = np.flatnonzero(~whole[k])
+        open_share = 1.0 - state.buried[leaves[leaf]]
+        value, at_points = np.zeros(len(leaf)), np.zeros((len(leaf), RECEIVER_POINTS))
+        # (where every point of the receiver saw the whole source, each leaf takes the exact
+        # unoccluded form factor at its own points: the fit decided the leaf is in sight; the
+        # kernel need not come from the fit as well. The others, all of a fit's leaves or none,
+        # read the fit)
+        exact_leaf = ~whole[k] if EXACT_FIT_LEAVES and state.periodic is None else np.zeros(len(leaf), bool)
+        by_field = np.flatnonzero(~exact_leaf)
+        if len(by_field):
+            kf, lf = k[by_field], leaf[by_field]
+            field = a[kf] + np.einsum("mc,mc->m", grad[kf], centroid[lf] - x0[kf])
+            if CURVED_FITS:
+                plane = a[ok][:, None] + np.einsum("mc,mkc->mk", grad[ok], nodes.recv_pts[recv[ok]] - x0[ok][:, None])
+                field = curved_field(nodes, recv[ok], gv[ok].astype(np.float64), plane, owner[by_field],
+                                     centroid[lf], nodes.area[leaves[lf]], field)
+            value[by_field] = field * open_share[by_field]
+            # (and the fit's plane at the leaf's own points: its spread over them is part of the
+            # leaf's light that the sources' gradients read, ``linear_sources``)
+            spread = np.einsum("mc,mkc->mk", grad[kf], nodes.recv_pts[leaves[lf]] - centroid[lf][:, None])
+            at_points[by_field] = value[by_field][:, None] + spread * open_share[by_field][:, None]
+        seen = np.flatnonzero(exact_leaf)
+        if len(seen):
             exact = reverse_form_factor(_buffers(state), src[k[seen]], leaves[leaf[seen]], state.offset)
-            exact *= (1.0 - state.buried[leaves[leaf[seen]]])[:, None]
+            exact *= open_share[seen][:, None]
             at_points[seen] = exact
             value[seen] = np.einsum("mk,mk->m", nodes.recv_w[leaves[leaf[seen]]], exact)
         # the fit's residual is the interpolation's error, counted like visibility noise
@@ -2196,6 +2194,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     on_node, from_src, node_ff = (np.concatenate(a) for a in ((pair_node, stay_node), (pair_src, stay_src),
                                                                (g_ff, stay_ff)))
     by_mean = np.ones(len(on_node), bool)
+    partly_hidden = np.concatenate([g_var, stay_var]) > 0     # (their rays' visibility noise)
     face_sampled = np.zeros(len(on_node), bool)
     sampled = (np.zeros(0, np.int64),) * 2 + (np.zeros(0),)
     if log is not None:
@@ -2205,7 +2204,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         volume = nodes.kind[from_src] == VOLUME
         by_triangle = volume & (node_ff > 0)
         if FACE_SAMPLES:
-            by_triangle |= (nodes.kind[from_src] == FACE) & (node_ff > 0) & (np.concatenate([g_var, stay_var]) > 0)
+            by_triangle |= (nodes.kind[from_src] == FACE) & (node_ff > 0) & partly_hidden
         by_triangle = np.flatnonzero(by_triangle)
         sampled = log.split(state, np.concatenate([pair_row, stay_row])[by_triangle], on_node[by_triangle],
                             np.concatenate([pair_rays, stay_rays])[by_triangle])
@@ -2238,7 +2237,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # that splitting every gathered source down to its triangles removed: fine box at 0.1
     # 1.53 % for 0.40 %, the 36-triangle box 1.55 % for 0.17 %.)
     # (a pair with part of its source hidden errs at first order, ``mean_error_order``)
-    hidden = np.concatenate([(np.concatenate([g_var, stay_var]) > 0)[by_mean],
+    hidden = np.concatenate([partly_hidden[by_mean],
                              np.zeros(len(recv) - int(by_mean.sum()), bool)])
     src_error = ff * b_src[srcs] * (varies[srcs] * mean_error_order(nodes, recv, srcs, fitted, hidden) +
                                     own_varies[srcs] * kernel_change(nodes, recv, srcs))
