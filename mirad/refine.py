@@ -98,6 +98,9 @@ class Links:
     rays : (M,) int16          shadow rays per receiver point used
     change : (M,) float32      the kernel's relative change across the source (``kernel_change``),
                                kept with the link: the source term reads it every pass
+    grad : (M, 3) float32      the transfer's gradient over the receiver, in its plane (1/m: the
+                               weighted plane through its points' transfers, each with its own
+                               visibility; 0 on volume clusters), set by ``core.evaluate_links``
     """
 
     recv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -109,8 +112,13 @@ class Links:
     spread: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     rays: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int16))
     change: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    grad: np.ndarray | None = None
 
-    _FIELDS = ("recv", "src", "ff", "ff_unocc", "err_ff", "vis_std", "spread", "rays", "change")
+    _FIELDS = ("recv", "src", "ff", "ff_unocc", "err_ff", "vis_std", "spread", "rays", "change", "grad")
+
+    def __post_init__(self):
+        if self.grad is None:
+            self.grad = np.zeros((len(self.recv), 3), np.float32)
 
     def __len__(self) -> int:
         return len(self.recv)
