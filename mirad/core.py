@@ -1284,12 +1284,13 @@ def unfittable(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
 #: and gradient. (Fine Cornell box at 0.15: the back wall's lower left took the tall box's face
 #: facing it at its mean, 0.274, where the part it sees sends 0.222: +23 %.)
 SPLIT_UNEVEN_FIT_SOURCES = True
-#: Whether how far a source's light varies across it is read from the radiosity with the
-#: links' planes pushed down (``varied_radiosity``), not from the solved means, which are flat
-#: below every link on an inner node. Fine Cornell box, L1 per seed over three seeds, with the
-#: source splits above: 0.2 2.10 -> 1.55 %, 0.15 1.42 -> 1.07 %, 0.1 0.85 -> 0.67 % for 20-25 %
-#: more rays; either alone 1.30 / 1.39 % at 0.15. The furnished room, the tiny-bright room,
-#: wall-pierce and the 36-triangle box within their seeds' spread.
+#: Whether the fits' sources (``SPLIT_UNEVEN_FIT_SOURCES``) are judged by how far their light varies
+#: as read from the radiosity with the links' planes pushed down (``varied_radiosity``), not from the
+#: solved means, which are flat below every link on an inner node. Fine Cornell box, L1 per seed over
+#: three seeds, with the fits' source splits: 0.2 2.10 -> 1.57 %, 0.15 1.42 -> 1.10 %, 0.1 0.85 ->
+#: 0.69 %, for about 15 % more rays (the splits alone: 1.30 % at 0.15). The gathered pairs' sources keep
+#: the solved means: judged so too, the furnished room at 0.03 took 28 % more pairs and 42 % more
+#: rays for the same 0.57 %, and at 0.01 passed 24 GB.
 VARIED_SOURCES = True
 #: Links on inner nodes start the gather's descent at one ray a point where ``first_rays`` allows it.
 LINK_FIRST_RAYS = True
@@ -1901,8 +1902,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     below = ancestor_matrix(nodes, leaves).T.tocsr()        # (N, L): leaves (their positions) below a node
     open_area = nodes.area[leaves] * (1.0 - state.buried[leaves])
     visible = below @ open_area
-    b_varied = varied_radiosity(state, solved, leaves) if VARIED_SOURCES else solved.b_node
-    varies = children_deviation(nodes, b_varied, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
+    varies = children_deviation(nodes, solved.b_node, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
+    # (the fits' sources judged from the links' planes, ``varied_radiosity``; the pairs' from the
+    # solved means, whose sources are split by the pairs' own light)
+    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves), visible) / \
+        np.maximum(channel_max(solved.b_node), 1e-300) if VARIED_SOURCES else varies
     # (and how the direct light varies inside the leaves below a node, a sun's shadow on them,
     # ``own_deviation``: no gradient sends it, so it errs to first order in the kernel's change.
     # Left out, a 40-leaf canopy's leaves read 1.36 % for an estimate of 0.64 %, their undersides
@@ -2012,7 +2016,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven_source((nodes.recv_w[recv] * gv).sum(axis=1), b_src[src], varies[src],
+                uneven_source((nodes.recv_w[recv] * gv).sum(axis=1), b_src[src], varies_fit[src],
                               mean_error_order(nodes, recv, src, fitted), h_node[recv], tol)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)

@@ -1091,7 +1091,7 @@ def test_linear_sources_send_a_bright_wall_top_where_its_light_goes(tmp_path, mo
     receivers took made 0.7 % more). The counterfactual takes the walls' means alone: without the
     gradients, and without the fits' source splits judged from the links' planes
     (``SPLIT_UNEVEN_FIT_SOURCES``, ``VARIED_SOURCES``), which mend part of the same bias (7.5 %
-    -> 5.3 % without the gradients, 2.8 % with them)."""
+    -> 5.3 % without the gradients, 2.6 % with them)."""
     from mirad.reference import triangle_reference
 
     sys.path.insert(0, str(SCENES / "hard-cases"))
