@@ -1135,7 +1135,8 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     regular = np.abs(det) > 1e-9 * np.einsum("mpp->m", gram) ** 3
     fit = np.empty((len(ids), 3, k_count))
     fit[regular] = np.matmul(adjugate[regular] / det[regular, None, None], np.swapaxes(scaled[regular], 1, 2))
-    fit[~regular] = np.linalg.pinv(design[~regular])                      # (points on a line)
+    if not regular.all():
+        fit[~regular] = np.linalg.pinv(design[~regular])                  # (points on a line)
     coef = np.einsum("mpk,mk->mp", fit[inverse], values)
     resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
     resid = resid * np.sqrt(k_count * w[inverse])
@@ -1905,7 +1906,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     varies = children_deviation(nodes, solved.b_node, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
     # (the fits' sources judged from the links' planes, ``varied_radiosity``; the pairs' from the
     # solved means, whose sources are split by the pairs' own light)
-    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves), visible) / \
+    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves, below), visible) / \
         np.maximum(channel_max(solved.b_node), 1e-300) if VARIED_SOURCES else varies
     # (and how the direct light varies inside the leaves below a node, a sun's shadow on them,
     # ``own_deviation``: no gradient sends it, so it errs to first order in the kernel's change.
@@ -2477,30 +2478,31 @@ def own_deviation(state: State, leaves: np.ndarray, *, delta_only: bool = False)
         channel_max(spread[leaves]) * np.sqrt(np.maximum(state.direct_samples[leaves], 1))
 
 
-def varied_radiosity(state: State, solved: Solved, leaves: np.ndarray) -> np.ndarray:
+def varied_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp.csr_matrix) -> np.ndarray:
     """(N, C) W/m^2: every node's mean radiosity with the light of the links on inner nodes
     pushed down as planes, not means: each leaf's irradiance moves by the gradient of every link
     above it (``Links.grad``, times its source's radiosity) at the leaf's centroid, and its
     radiosity by its reflectance times that. The solved system pushes a link's mean to every leaf
     below it, so a face cluster that receives its light at its own level is flat in it, and its
     children's means (``children_deviation``) say its light does not vary across it. One bounce of
-    the variation, on the solved sources' means: what it is for is how far the sources vary."""
+    the variation, on the solved sources' means: what it is for is how far the sources vary.
+    ``below`` (N, L): the leaves (positions in ``leaves`` (L,)) under each node."""
     nodes, links = state.nodes, state.links
-    n = len(nodes)
     channels = solved.b_node.shape[1]
-    # (each receiver's links' gradients times their sources' radiosity: (N, 3, C))
-    grad = np.zeros((n, 3, channels))
+    # (the receivers of links, and each one's links' gradients times their sources' radiosity:
+    # (R, 3, C); a leaf's own links move nothing, its points' mean being its centroid)
+    receivers, row = np.unique(links.recv, return_inverse=True)
     b_src = solved.b_node[links.src]
-    for c in range(channels):
-        for k in range(3):
-            grad[:, k, c] = np.bincount(links.recv, weights=links.grad[:, k] * b_src[:, c], minlength=n)
-    w = nodes.recv_w.astype(np.float64)
-    x0 = np.einsum("nk,nkc->nc", w, nodes.recv_pts.astype(np.float64)) / np.maximum(w.sum(axis=1), 1e-300)[:, None]
-    above = ancestor_matrix(nodes, leaves).tocoo()                          # (L, N)
-    # (each leaf's offset from each ancestor's points, not the two positions apart: a scene far
+    grad = np.stack([np.stack([np.bincount(row, weights=links.grad[:, k] * b_src[:, c], minlength=len(receivers))
+                               for c in range(channels)], axis=1) for k in range(3)], axis=1)
+    w = nodes.recv_w[receivers].astype(np.float64)
+    x0 = np.einsum("rk,rkc->rc", w, nodes.recv_pts[receivers].astype(np.float64)) / \
+        np.maximum(w.sum(axis=1), 1e-300)[:, None]
+    leaf, owner = _leaf_positions_below(below, receivers)
+    # (each leaf's offset from each receiver's points, not the two positions apart: a scene far
     # from the origin would lose the offsets' digits)
-    offset = nodes.poly[leaves, :3].astype(np.float64).mean(axis=1)[above.row] - x0[above.col]
-    moved = np.stack([np.bincount(above.row, weights=np.einsum("pk,pk->p", offset, grad[above.col, :, c]),
+    offset = nodes.poly[leaves[leaf], :3].astype(np.float64).mean(axis=1) - x0[owner]
+    moved = np.stack([np.bincount(leaf, weights=np.einsum("pk,pk->p", offset, grad[owner, :, c]),
                                   minlength=len(leaves)) for c in range(channels)], axis=1)
     rho = state.patch_rho[nodes.patch[leaves]][:, :channels]
     return solved.system.pull @ np.maximum(solved.b_leaf + rho * moved, 0.0)

@@ -76,7 +76,7 @@ def test_the_links_planes_show_how_a_box_face_lit_at_its_own_level_varies():
     core.refine(state, empty, np.finfo(float).max, 10 ** 7)
     solved = core.solve(state, None)
     n, leaves = len(nodes), solved.leaves
-    varied = core.varied_radiosity(state, solved, leaves)
+    varied = core.varied_radiosity(state, solved, leaves, core.ancestor_matrix(nodes, leaves).T.tocsr())
     gathered = core.final_gather(state, solved)
     system = gathered.system
     b_gathered = (system.pull @ (system.emission + system.scatter(gathered.irradiance)))[:n]
