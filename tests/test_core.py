@@ -994,14 +994,17 @@ def test_furnace_with_occluders_every_triangle_within_tolerance():
     assert sol.stats["estimated_error"] <= tol
 
 
-@pytest.mark.parametrize("rays_per_point", [4, 16])
-def test_far_volume_cluster_links_know_their_sampling_error(rays_per_point):
+@pytest.mark.parametrize("rays_per_point,where", [(4, "far"), (16, "far"), (4, "near"), (16, "near")])
+def test_volume_cluster_links_know_their_sampling_error(rays_per_point, where):
     """A link from a volume cluster is a Monte Carlo transfer; its standard error
     (refine.volume_transfer_std) must match the spread of the transfer over independent
     seeds. Each link draws its own points on the source, so the seeds' mean converges to one
     value and the spread follows the ray count. The receiver's points aim their rays at the
     link's 16 targets: with 16 rays a point every point uses all of them, and the error
-    taken as if its 112 samples were independent read half the spread (ratio 0.53)."""
+    taken as if its 112 samples were independent read half the spread (ratio 0.53). Near the
+    cluster too, within its sphere's diameter but outside the sphere, where since 2026-11-29 the
+    passes take this error rather than the spheres' bound (``refine.NEAR_CLUSTER_GAP``): the
+    samples, weighted by the kernel, know their error there as well."""
     from mirad.refine import link_values
     from mirad.transfer import NodeBuffers, evaluate
 
@@ -1011,10 +1014,11 @@ def test_far_volume_cluster_links_know_their_sampling_error(rays_per_point):
     vol = np.flatnonzero(nodes.kind == core.VOLUME)
     tri = np.flatnonzero(nodes.kind == core.TRIANGLE)
     rng = np.random.default_rng(3)
-    recv = rng.choice(tri, 400)
-    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 400)
-    far = core.distance_to_source(nodes, recv, src) > 2.0 * nodes.radius[src]
-    recv, src = recv[far], src[far]
+    recv = rng.choice(tri, 4000)
+    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 4000)
+    gap = core.distance_to_source(nodes, recv, src) / nodes.radius[src]
+    chosen = np.flatnonzero(gap > 2.0 if where == "far" else (gap > 0.0) & (gap <= 2.0))[:400]
+    recv, src = recv[chosen], src[chosen]
     rays = np.full(len(recv), rays_per_point, np.int16)
     buffers = NodeBuffers.upload(nodes)
     runs = [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point,
