@@ -192,7 +192,7 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
 #: How near to a volume-cluster source (the gap from its bounding sphere to the receiver's
 #: centre, in the sphere's radii) its transfer is bounded by the spheres' form factor rather than
 #: judged by its samples' error (``power_errors``): 0, only where the sphere holds the receiver's
-#: centre. It was 2 (the sphere's diameter) until 2026-11-29, when the samples were not yet
+#: centre. It was 2 (the sphere's diameter) until 2026-11-29, a rule made before the samples were
 #: weighted by the kernel (``transfer.KERNEL_WEIGHTED_VOLUMES``): a canopy's passes then opened
 #: every cluster near each leaf (the 1,000-leaf canopy at 0.9: 14 passes, 147,629 links, 2.44 s
 #: for 2.04 % per leaf; now 55,501 links, 1.10 s for 2.35 %, and 2 % per leaf in about 1.5 s for
