@@ -390,20 +390,18 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
         # --- children links ----------------------------------------------------------------
         s_idx = np.flatnonzero(dec.split_src)
-        kids = nodes.children[part.src[s_idx]]
-        own, slot = np.nonzero(kids >= 0)
-        r1, s1 = part.recv[s_idx][own], kids[own, slot]
+        own_s, s1 = nodes.children_of(part.src[s_idx])
+        r1 = part.recv[s_idx][own_s]
         q_idx = np.flatnonzero(dec.split_recv)
-        kids = nodes.children[part.recv[q_idx]]
-        own, slot = np.nonzero(kids >= 0)
-        r2, s2 = kids[own, slot], part.src[q_idx][own]
+        own_r, r2 = nodes.children_of(part.recv[q_idx])
+        s2 = part.src[q_idx][own_r]
         m_idx = np.flatnonzero(dec.more_rays)
         r3, s3 = part.recv[m_idx], part.src[m_idx]
         rays = np.concatenate([np.ones(len(r1) + len(r2), np.int16),
                                np.minimum(4 * part.rays[m_idx], MAX_RAYS_PER_POINT).astype(np.int16)])
         # children of a link keep its ray count only where it grew for noise
-        rays[: len(r1)] = part.rays[s_idx][np.nonzero(nodes.children[part.src[s_idx]] >= 0)[0]]
-        rays[len(r1):len(r1) + len(r2)] = part.rays[q_idx][np.nonzero(nodes.children[part.recv[q_idx]] >= 0)[0]]
+        rays[: len(r1)] = part.rays[s_idx][own_s]
+        rays[len(r1):len(r1) + len(r2)] = part.rays[q_idx][own_r]
         t1 = time.perf_counter()
         new = evaluate_links(state, np.concatenate([r1, r2, r3]), np.concatenate([s1, s2, s3]), rays)
         t0 += time.perf_counter() - t1          # the wave is timed as "transfer"
@@ -936,9 +934,8 @@ def _source_descent(state: State, solved: Solved, log: "SampleLog | None", pairs
             pairs = [a[:0] for a in pairs]
             break
         node, src, rays = pairs[:3]
-        kids = state.nodes.children[src[split]]
-        own, slot = np.nonzero(kids >= 0)
-        k_node, k_src, k_rays = node[split][own], kids[own, slot].astype(np.int64), rays[split][own]
+        own, k_src = state.nodes.children_of(src[split])
+        k_node, k_rays = node[split][own], rays[split][own]
         k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)
         seconds += k_seconds
         evaluated += len(k_node)
@@ -1400,11 +1397,10 @@ def separated_children(state: State, ids: np.ndarray) -> np.ndarray:
     ids = np.asarray(ids, np.int64)
     out = np.zeros(len(ids), bool)
     flat = np.flatnonzero((nodes.curve[ids, 6] <= 0) & (state.buried[ids] <= 0))
-    kids = nodes.children[ids[flat]]
-    own, slot = np.nonzero(kids >= 0)
+    own, child = nodes.children_of(ids[flat])
     if not len(own):
         return out
-    parent, child = ids[flat][own], kids[own, slot]
+    parent = ids[flat][own]
     x0 = np.einsum("mk,mkc->mc", nodes.recv_w[parent].astype(np.float64), nodes.recv_pts[parent].astype(np.float64))
     hit = blocked(state.scene.mi_scene, x0, nodes.poly[child, :3].astype(np.float64).mean(axis=1),
                   nodes.normal[parent].astype(np.float64), state.offset)
@@ -1813,9 +1809,8 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
         recv, src = now[:2]
         split = (overhangs(nodes, recv, src) | near_volume(nodes, recv, src)) & (nodes.children[src, 0] >= 0)
         done.append(tuple(a[~split] for a in now))
-        kids = nodes.children[src[split]]
-        own, slot = np.nonzero(kids >= 0)
-        now = (recv[split][own], kids[own, slot].astype(np.int64), *(a[split][own] for a in now[2:]))
+        own, child = nodes.children_of(src[split])
+        now = (recv[split][own], child, *(a[split][own] for a in now[2:]))
     return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
 
 
@@ -1903,18 +1898,18 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     below = ancestor_matrix(nodes, leaves).T.tocsr()        # (N, L): leaves (their positions) below a node
     open_area = nodes.area[leaves] * (1.0 - state.buried[leaves])
     visible = below @ open_area
-    varies = children_deviation(nodes, solved.b_node, visible) / np.maximum(channel_max(solved.b_node), 1e-300)
+    brightest = np.maximum(channel_max(solved.b_node), 1e-300)
+    varies = children_deviation(nodes, solved.b_node, visible) / brightest
     # (the fits' sources judged from the links' planes, ``varied_radiosity``; the pairs' from the
     # solved means, whose sources are split by the pairs' own light)
-    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves, below), visible) / \
-        np.maximum(channel_max(solved.b_node), 1e-300) if VARIED_SOURCES else varies
+    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves, below), visible) / brightest \
+        if VARIED_SOURCES else varies
     # (and how the direct light varies inside the leaves below a node, a sun's shadow on them,
     # ``own_deviation``: no gradient sends it, so it errs to first order in the kernel's change.
     # Left out, a 40-leaf canopy's leaves read 1.36 % for an estimate of 0.64 %, their undersides
     # +2.7 % high; with it 2.2 %. The undersides are high where one pair brings a ground cluster's
     # mean to a steep underside facing the leaves' shadows on it: validation/RESULTS.md)
-    own_varies = (below @ (open_area * own_deviation(state, leaves))) / np.maximum(visible, 1e-300) / \
-        np.maximum(channel_max(solved.b_node), 1e-300)
+    own_varies = (below @ (open_area * own_deviation(state, leaves))) / np.maximum(visible, 1e-300) / brightest
     fitted = gradient_sent(state, below, leaves) if LINEAR_SOURCES else np.zeros(n, bool)
     tol = state.settings.tolerance
     centroid = nodes.poly[leaves, :3].mean(axis=1)
@@ -2078,13 +2073,12 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         rest = np.flatnonzero(~smooth & ~source_split)
         tried = np.flatnonzero(whole)
         failed = float((~smooth[tried]).mean()) if len(tried) else failed
-        kids = nodes.children[recv[rest]]
-        own, slot = np.nonzero(kids >= 0)
+        # (and the fits whose source is uneven one level down the source's)
+        own, r_kid = nodes.children_of(recv[rest])
         s_rest = np.flatnonzero(source_split)
-        s_kids = nodes.children[src[s_rest]]
-        s_own, s_slot = np.nonzero(s_kids >= 0)
-        recv = np.concatenate([kids[own, slot].astype(np.int64), recv[s_rest][s_own]])
-        src = np.concatenate([src[rest][own], s_kids[s_own, s_slot].astype(np.int64)])
+        s_own, s_kid = nodes.children_of(src[s_rest])
+        recv = np.concatenate([r_kid, recv[s_rest][s_own]])
+        src = np.concatenate([src[rest][own], s_kid])
         rays = np.concatenate([rays[rest][own], rays[s_rest][s_own]])
         origin = np.concatenate([origin[rest][own], origin[s_rest][s_own]])
     pair_node, pair_src, pair_rays, pair_link = _columns(pairs)
@@ -2194,12 +2188,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                      pair_row[rest]))
         kept.append([a[~on_split] for a in pairs_now])
         parent_node = np.concatenate([pair_node[over]] + moved_node)
-        kids = nodes.children[parent_node]
-        own, slot = np.nonzero(kids >= 0)
+        own, k_node = nodes.children_of(parent_node)
         # (a child's noise weighs by its share of the input triangle, a quarter of its parent's:
         # it starts at a quarter of its parent's rays, and gets more where they disagree; the
         # fits and links moved off a crossed leaf start at one)
-        k_node, k_src = kids[own, slot].astype(np.int64), np.concatenate([pair_src[over]] + moved_src)[own]
+        k_src = np.concatenate([pair_src[over]] + moved_src)[own]
         first = np.maximum(pair_rays[over] // GATHER_RAYS, 1)
         k_rays = np.concatenate([first, np.ones(len(parent_node) - len(first), first.dtype)])[own]
         k_ff, k_var, k_shadow, k_seconds, k_pts, k_row = _logged_pairs(state, solved, log, k_node, k_src, k_rays)

@@ -129,6 +129,13 @@ class Nodes:
         """A copy whose arrays the copy's owner may change (splits append to them)."""
         return Nodes(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
 
+    def children_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every child of nodes ids (M,): (its parent's position in ids (C,), its node id (C,)),
+        in the order of ids and then of the children's slots."""
+        kids = self.children[ids]
+        own, slot = np.nonzero(kids >= 0)
+        return own, kids[own, slot].astype(np.int64)
+
     def splittable(self, min_area: float) -> np.ndarray:
         """(N,) bool: clusters, and triangles larger than ``min_area`` (m^2)."""
         return (self.kind != TRIANGLE) | (self.area > min_area)
