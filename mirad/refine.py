@@ -20,7 +20,10 @@ form-factor units, both from the receiver points of its wave (transfer.py):
   side measures what a receiver misses that straddles the source's plane with every point
   behind it (``unseen_in_front``): its part in front may see the source.
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
-  over the link's n rays (zero when all rays agree).
+  over the link's n rays (zero when all rays agree), or a volume cluster's sampled
+  transfer's (``volume_transfer_std``). Zero on face clusters: there the sampling error is
+  the error of the mean (``err_ff`` above), since the final gather evaluates the link again
+  on the leaves below with rays of its own.
 
 As power (W): irradiance errors over the receiver's area A_r, with the source's brightest
 channel (``power_errors``; ERRORS_OF = "irradiance": what the receiver absorbs and what it
@@ -184,9 +187,18 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     if vol.any():
         vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
                                            rays[vol], recv[vol])
+        if VOLUME_NOISE_OF_FACE_MEANS:
+            vis_std[vol & face_recv] = 0.0
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))
+
+
+#: Whether a volume cluster's sampling error on a face-cluster receiver counts as the error of
+#: the receiver's mean (``err_ff``, reaching the output only through the light the cluster
+#: reflects, ``face_mean_errors``) rather than as visibility noise on the output: the final
+#: gather evaluates every link on a face cluster again on the leaves below, with rays of its own.
+VOLUME_NOISE_OF_FACE_MEANS = True
 
 
 #: How near to a volume-cluster source (the gap from its bounding sphere to the receiver's

@@ -1034,6 +1034,42 @@ def test_volume_cluster_links_know_their_sampling_error(rays_per_point, where):
     assert 0.8 < ratio < 3.0, ratio
 
 
+def test_volume_cluster_links_on_face_clusters_count_their_samples_in_the_mean():
+    """On a face cluster a link's transfer is the mean of its points; the final gather
+    evaluates the link again on every leaf below with rays of its own, so the passes'
+    sampling error reaches the output only through the light the cluster reflects: it is the
+    error of the mean (``err_ff``, the points' stratified estimate, ``face_mean_errors``), not
+    visibility noise on the output (``vis_std``, counted at full weight). Counted as noise, a
+    1,000-leaf canopy's passes at 0.1 made 219,604 links and 65.9 M rays for 0.65 % per leaf
+    in 11.6 s; as the mean's error, 129,113 links and 38.7 M rays for 0.71 % in 6.9 s. The mean's
+    error knows the spread over seeds as the noise did (ratio 1.2-1.3, the noise's 1.4-1.9)."""
+    from mirad.refine import link_values
+    from mirad.transfer import NodeBuffers, evaluate
+
+    scene = mirad.load_scene(SCENES / "plant-canopy" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    vol = np.flatnonzero(nodes.kind == core.VOLUME)
+    face = np.flatnonzero(nodes.kind == core.FACE)
+    rng = np.random.default_rng(3)
+    recv = rng.choice(face, 4000)
+    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 4000)
+    chosen = np.flatnonzero(core.distance_to_source(nodes, recv, src) > 0.0)[:400]
+    recv, src = recv[chosen], src[chosen]
+    rays = np.full(len(recv), 4, np.int16)
+    buffers = NodeBuffers.upload(nodes)
+    runs = [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=4,
+                                                   seed=seed, offset=state.offset), rays)
+            for seed in range(12)]
+    assert all((r.vis_std == 0).all() for r in runs)
+    ff = np.array([r.ff for r in runs], np.float64)
+    predicted = np.mean([r.err_ff for r in runs], axis=0)
+    seen = ff.mean(axis=0) > 0
+    assert seen.sum() > 50
+    ratio = np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1)))
+    assert 0.8 < ratio < 3.0, ratio
+
+
 def test_children_deviation_weighs_the_childrens_visible_areas():
     """A node's children's deviation from its mean (core.children_deviation): the visible-area
     weighted mean of |B_child - B_node| over its children, brightest channel, 0 on leaves."""
