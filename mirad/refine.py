@@ -21,9 +21,9 @@ form-factor units, both from the receiver points of its wave (transfer.py):
   behind it (``unseen_in_front``): its part in front may see the source.
 * ``vis_std``: the standard error of the visibility sampling, F_unocc sqrt(V (1 - V) / n)
   over the link's n rays (zero when all rays agree), or a volume cluster's sampled
-  transfer's (``volume_transfer_std``). Zero on face clusters: there the sampling error is
-  the error of the mean (``err_ff`` above), since the final gather evaluates the link again
-  on the leaves below with rays of its own.
+  transfer's (``volume_transfer_std``). Zero on face clusters: there a volume cluster's
+  sampling error is an error of the mean (``err_ff`` is at least it), since the final gather
+  evaluates the link again on the leaves below with rays of its own.
 
 As power (W): irradiance errors over the receiver's area A_r, with the source's brightest
 channel (``power_errors``; ERRORS_OF = "irradiance": what the receiver absorbs and what it
@@ -188,7 +188,11 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
         vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
                                            rays[vol], recv[vol])
         if VOLUME_NOISE_OF_FACE_MEANS:
-            vis_std[vol & face_recv] = 0.0
+            # (the points' stratified estimate alone, inside a cluster's sphere, read a third of
+            # the seeds' spread where the samples' own error read it)
+            on_face = vol & face_recv
+            err[on_face] = np.maximum(err[on_face], vis_std[on_face])
+            vis_std[on_face] = 0.0
     return Links(recv.astype(np.int32), src.astype(np.int32), ff.astype(np.float32), ff_unocc.astype(np.float32),
                  err.astype(np.float32), vis_std.astype(np.float32), spread.astype(np.float32),
                  rays.astype(np.int16), kernel_change(nodes, recv, src).astype(np.float32))

@@ -1038,11 +1038,12 @@ def test_volume_cluster_links_on_face_clusters_count_their_samples_in_the_mean()
     """On a face cluster a link's transfer is the mean of its points; the final gather
     evaluates the link again on every leaf below with rays of its own, so the passes'
     sampling error reaches the output only through the light the cluster reflects: it is the
-    error of the mean (``err_ff``, the points' stratified estimate, ``face_mean_errors``), not
-    visibility noise on the output (``vis_std``, counted at full weight). Counted as noise, a
-    1,000-leaf canopy's passes at 0.1 made 219,604 links and 65.9 M rays for 0.65 % per leaf
-    in 11.6 s; as the mean's error, 129,113 links and 38.7 M rays for 0.71 % in 6.9 s. The mean's
-    error knows the spread over seeds as the noise did (ratio 1.2-1.3, the noise's 1.4-1.9)."""
+    error of the mean (``err_ff``, ``face_mean_errors``: the larger of the samples' own error and
+    the points' stratified estimate, which alone read a third of the spread inside the
+    cluster's sphere), not visibility noise on the output (``vis_std``, counted at full weight).
+    Counted as noise, a 1,000-leaf canopy's passes at 0.1 made 219,604 links and 65.9 M rays for
+    0.65 % per leaf in 11.6 s; as the mean's error, 130,485 links and 39.5 M rays for 0.72 % in
+    7.0 s. Outside the sphere the mean's error reads 1.6-2.0 times the seeds' spread."""
     from mirad.refine import link_values
     from mirad.transfer import NodeBuffers, evaluate
 
