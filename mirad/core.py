@@ -36,7 +36,7 @@ from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
                     build_nodes, split_triangles)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
-                     face_mean_errors, kernel_change, link_values, power_errors, reciprocal_error,
+                     face_mean_errors, holding_chains_opened, holds_receiver, kernel_change, link_values, power_errors, reciprocal_error,
                      noise_visibility, refinement_threshold, unresolved, unseen_in_front, visible_fraction,
                      volume_transfer_std)
 from .scene import Scene
@@ -354,6 +354,12 @@ def _keep(state: State, links: Links) -> np.ndarray:
     return keep
 
 
+#: Whether a volume cluster opened around its receiver opens the clusters below it that also
+#: hold the receiver, and whose bound is over the refinement threshold, at once
+#: (``refine.holding_chains_opened``) rather than a level a pass.
+OPEN_HOLDING_CHAINS = True
+
+
 def refine(state: State, source: SourceState, eps: float, max_links: int,
            max_waves: int | None = None, estimated: "Estimate | None" = None) -> tuple[bool, bool]:
     """Stage refine: waves until every link is under eps (W), or ``max_waves`` waves;
@@ -381,6 +387,22 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         # (a split link gives way to one per child: up to four for a triangle not yet split)
         ends = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
         growth = int((np.where(nodes.children[ends, 0] >= 0, (nodes.children[ends] >= 0).sum(axis=1), 4) - 1).sum())
+        s_idx = np.flatnonzero(dec.split_src)
+        held = np.zeros(len(s_idx), bool)
+        if OPEN_HOLDING_CHAINS:
+            # (a cluster opened around its receiver: the children that hold it open too while
+            # their bound is over eps, before any of their links is evaluated)
+            held = holds_receiver(nodes, part.recv[s_idx], part.src[s_idx]) & np.isfinite(rec[s_idx])
+            h = np.flatnonzero(held)
+            per_light = rec[s_idx[h]] / np.maximum(source.b_max_below[part.src[s_idx[h]]], 1e-300)
+            own_h, kids = nodes.children_of(part.src[s_idx[h]])
+            within, kids = holding_chains_opened(nodes, part.recv[s_idx[h]][own_h], kids, per_light[own_h],
+                                                 source.b_max_below, eps)
+            chained = (h[own_h[within]], kids)
+            if len(links) + growth + len(kids) - len(own_h) <= max_links:
+                growth += len(kids) - len(own_h)
+            else:
+                held[:] = False         # (near the cap: a level a pass, as far as it goes)
         if len(links) + growth > max_links:
             capped = True
             break
@@ -389,8 +411,13 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         need = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
         split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
         # --- children links ----------------------------------------------------------------
-        s_idx = np.flatnonzero(dec.split_src)
-        own_s, s1 = nodes.children_of(part.src[s_idx])
+        plain = np.flatnonzero(~held)
+        own_s, s1 = nodes.children_of(part.src[s_idx[plain]])
+        own_s = plain[own_s]
+        if held.any():
+            own_s, s1 = np.concatenate([own_s, chained[0]]), np.concatenate([s1, chained[1]])
+            order = np.argsort(own_s, kind="stable")
+            own_s, s1 = own_s[order], s1[order]
         r1 = part.recv[s_idx][own_s]
         q_idx = np.flatnonzero(dec.split_recv)
         own_r, r2 = nodes.children_of(part.recv[q_idx])
@@ -2399,11 +2426,17 @@ def source_state(state: State, solved: Solved) -> SourceState:
         leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
         dev = measured.copy()
         dev[senders] = np.maximum(measured[senders], pull @ (leaf_rho * (system.push @ variation)))
-    # the brightest leaf below each sender (a segmented maximum over the pull's rows)
+    # the brightest leaf below each sender and each volume cluster (a segmented maximum over the
+    # pull's rows; the clusters' for ``refine.holding_chains_opened``)
     below = np.zeros(n)
+    if OPEN_HOLDING_CHAINS:
+        ids = np.union1d(senders, np.flatnonzero(state.nodes.kind == VOLUME))
+        pull = system.pull[ids]
+    else:
+        ids = senders
     filled = np.flatnonzero(np.diff(pull.indptr) > 0)
     if len(filled):
-        below[senders[filled]] = np.maximum.reduceat(channel_max(b_leaf)[pull.indices], pull.indptr[filled])
+        below[ids[filled]] = np.maximum.reduceat(channel_max(b_leaf)[pull.indices], pull.indptr[filled])
     leaf_area = state.nodes.area[solved.leaves]
     rho_mean = float((leaf_area * channel_max(solved.system.rho)).sum() / max(leaf_area.sum(), 1e-300))
     # an error in what a face cluster sends reaches the output after interreflection (and,
