@@ -35,10 +35,10 @@ from tqdm.auto import tqdm
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
                     build_nodes, split_triangles)
-from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Links, SourceState, choose, distance_to_source,
-                     face_mean_errors, holding_chains_opened, holds_receiver, kernel_change, link_values, power_errors, reciprocal_error,
-                     noise_visibility, refinement_threshold, unresolved, unseen_in_front, visible_fraction,
-                     volume_transfer_std)
+from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Decision, Links, SourceState, choose,
+                     distance_to_source, face_mean_errors, holding_chains_opened, holds_receiver, kernel_change,
+                     link_values, power_errors, reciprocal_error, noise_visibility, refinement_threshold, unresolved,
+                     unseen_in_front, visible_fraction, volume_transfer_std)
 from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
@@ -360,6 +360,24 @@ def _keep(state: State, links: Links) -> np.ndarray:
 OPEN_HOLDING_CHAINS = True
 
 
+def _holding_chains(state: State, links: Links, dec: Decision, receiver: np.ndarray, source: SourceState,
+                    eps: float):
+    """The chains of clusters that the links splitting their source open at once
+    (``refine.holding_chains_opened``): ((the link each comes from (C,), its source (C,)), the
+    links each of links (M,) makes beyond its source's children (M,)), or None for none."""
+    nodes = state.nodes
+    s_idx = np.flatnonzero(dec.split_src)
+    held = s_idx[holds_receiver(nodes, links.recv[s_idx], links.src[s_idx]) & np.isfinite(receiver[s_idx])]
+    if not len(held):
+        return None
+    per_light = receiver[held] / np.maximum(source.b_max_below[links.src[held]], 1e-300)
+    own, kids = nodes.children_of(links.src[held])
+    within, kids = holding_chains_opened(nodes, links.recv[held][own], kids, per_light[own], source.b_max_below, eps)
+    extra = np.zeros(len(links), np.int64)
+    extra[held] = np.bincount(own[within], minlength=len(held)) - np.bincount(own, minlength=len(held))
+    return (held[own[within]], kids), extra
+
+
 def refine(state: State, source: SourceState, eps: float, max_links: int,
            max_waves: int | None = None, estimated: "Estimate | None" = None) -> tuple[bool, bool]:
     """Stage refine: waves until every link is under eps (W), or ``max_waves`` waves;
@@ -385,37 +403,38 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         if not dec.any:
             break
         # (a split link gives way to one per child: up to four for a triangle not yet split)
-        ends = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
-        growth = int((np.where(nodes.children[ends, 0] >= 0, (nodes.children[ends] >= 0).sum(axis=1), 4) - 1).sum())
-        s_idx = np.flatnonzero(dec.split_src)
-        held = np.zeros(len(s_idx), bool)
-        if OPEN_HOLDING_CHAINS:
-            # (a cluster opened around its receiver: the children that hold it open too while
-            # their bound is over eps, before any of their links is evaluated)
-            held = holds_receiver(nodes, part.recv[s_idx], part.src[s_idx]) & np.isfinite(rec[s_idx])
-            h = np.flatnonzero(held)
-            per_light = rec[s_idx[h]] / np.maximum(source.b_max_below[part.src[s_idx[h]]], 1e-300)
-            own_h, kids = nodes.children_of(part.src[s_idx[h]])
-            within, kids = holding_chains_opened(nodes, part.recv[s_idx[h]][own_h], kids, per_light[own_h],
-                                                 source.b_max_below, eps)
-            chained = (h[own_h[within]], kids)
-            if len(links) + growth + len(kids) - len(own_h) <= max_links:
-                growth += len(kids) - len(own_h)
-            else:
-                held[:] = False         # (near the cap: a level a pass, as far as it goes)
-        if len(links) + growth > max_links:
+        growth = np.zeros(len(part), np.int64)
+        for mask, end in ((dec.split_src, part.src), (dec.split_recv, part.recv)):
+            ends = end[mask]
+            growth[mask] = np.where(nodes.children[ends, 0] >= 0, (nodes.children[ends] >= 0).sum(axis=1), 4) - 1
+        chained = _holding_chains(state, part, dec, rec, source, eps) if OPEN_HOLDING_CHAINS else None
+        if chained is not None:
+            growth += chained[1]
+        if len(links) + int(growth.sum()) > max_links:
             capped = True
-            break
+            # (the budget left goes to the links of largest error: what fits of this wave)
+            decided = np.flatnonzero(dec.split_src | dec.split_recv | dec.more_rays)
+            order = decided[np.argsort(-(rec + src_term)[decided], kind="stable")]
+            fits = np.zeros(len(part), bool)
+            fits[order[np.cumsum(growth[order]) <= max_links - len(links)]] = True
+            if not fits.any():
+                break
+            dec = Decision(dec.split_src & fits, dec.split_recv & fits, dec.more_rays & fits)
+            if chained is not None:
+                chained = _holding_chains(state, part, dec, rec, source, eps)
         changed = True
         # --- split what must split: triangle leaves get children first ------------------
         need = np.concatenate([part.src[dec.split_src], part.recv[dec.split_recv]])
         split_leaves(state, need[(nodes.kind[need] == TRIANGLE) & (nodes.children[need, 0] < 0)])
         # --- children links ----------------------------------------------------------------
-        plain = np.flatnonzero(~held)
-        own_s, s1 = nodes.children_of(part.src[s_idx[plain]])
-        own_s = plain[own_s]
-        if held.any():
-            own_s, s1 = np.concatenate([own_s, chained[0]]), np.concatenate([s1, chained[1]])
+        s_idx = np.flatnonzero(dec.split_src)
+        own_s, s1 = nodes.children_of(part.src[s_idx])
+        if chained is not None:
+            # (the held ones' children replaced by their chains)
+            plain = ~np.isin(s_idx, chained[0][0])
+            own_s, s1 = own_s[plain[own_s]], s1[plain[own_s]]
+            pos = np.searchsorted(s_idx, chained[0][0])
+            own_s, s1 = np.concatenate([own_s, pos]), np.concatenate([s1, chained[0][1]])
             order = np.argsort(own_s, kind="stable")
             own_s, s1 = own_s[order], s1[order]
         r1 = part.recv[s_idx][own_s]
@@ -438,6 +457,8 @@ def refine(state: State, source: SourceState, eps: float, max_links: int,
         kept = links.select(keep)
         checked = len(kept)
         state.links = kept.extend(new)
+        if capped:
+            break
     state.timing["refine"] += time.perf_counter() - t0
     return changed, capped
 

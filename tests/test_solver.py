@@ -168,17 +168,19 @@ def test_error_control_on_the_cornell_box_against_path_tracing(cornell, toleranc
 
 
 def test_link_cap_stops_refinement_with_a_warning_and_an_honest_estimate():
-    """max_links (by default what half the memory holds) stops refinement before a wave would
-    pass it: a warning names the cap, the links stay under it and the estimate says the
-    tolerance was not reached. The warning points at the caller's line, not into mirad (a
-    fixed stack level pointed at mirad/__init__.py, and Python showed it once per process)."""
+    """max_links (by default what half the memory holds) stops refinement where a wave would
+    pass it, after the part of that wave that fits (the links of largest error first: the
+    whole wave was dropped, 4,807 links): a warning names the cap, the links stay under it and
+    the estimate says the tolerance was not reached. The warning points at the caller's line,
+    not into mirad (a fixed stack level pointed at mirad/__init__.py, and Python showed it once
+    per process)."""
     # (at 20,000 links the box already estimates 0.94 % since transfers whose rays were all
     # blocked count their visibility's noise, 2026-11-28: capped, and within the tolerance all
     # the same; 5,000 stops it at 1.55 %)
     with pytest.warns(UserWarning, match="max_links=5,000") as record:
         sol = mirad.solve(SCENES / "cornell-box" / "scene.xml", tolerance=0.01, max_links=5_000, quiet=True)
     assert {w.filename for w in record} == {__file__}
-    assert sol.stats["capped"] and sol.stats["links"] <= 5_000
+    assert sol.stats["capped"] and 0.98 * 5_000 <= sol.stats["links"] <= 5_000
     assert sol.stats["estimated_error"] > 0.01
     with pytest.raises(mirad.errors.SettingsError, match="max_links"):
         make_settings(max_links=0)
