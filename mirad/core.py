@@ -1616,6 +1616,8 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     weighted_design = wts[:, :, None] * design                 # (P, K, 3)
     design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))     # (P, 3, K)
     per_point = np.matmul(design_t, design).reshape(-1, 9)     # (a batched product: einsum's is 2-3x slower)
+    design_sum = weighted_design.sum(axis=1)                   # (P, 3)
+    del pts, d, u, v, design, weighted_design
     gram = (to_source @ per_point).reshape(-1, 3, 3)
     adjugate, det = _symmetric_adjugate(gram)
     regular = np.abs(det) > 1e-12 * np.maximum(np.einsum("sii->s", gram), 1e-300) ** 3
@@ -1655,7 +1657,6 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     moved_area = nodes.area[r]
 
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
-    design_sum = weighted_design.sum(axis=1)                   # (P, 3)
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
     inv_seen = 1.0 / np.maximum(seen, 1e-9)
     rho_fit = rho[fit_pos]                                     # (P, C)
@@ -2251,6 +2252,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         pairs_now = _lit([k_node, k_src, k_rays, k_ff, k_var, k_shadow, k_pts, k_row])
     kept.append(pairs_now)
     pair_node, pair_src, pair_rays, g_ff, g_var, g_shadow, g_pts, pair_row = _columns(kept)
+    # (a large scene's pairs are tens of millions: no copy outlives its use, here and below)
+    del kept, pairs_now
     # (the nodes the splits above made stand for the leaf they were split from wherever the
     # figures of the passes' solution are read)
     base = np.arange(len(nodes))
@@ -2278,6 +2281,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # every gathered transfer on its receiver (a leaf, or a leaf split above), with the
     # variance of its error: visibility noise, the shadow's quadrature, fit residuals
     stay_node, stay_src, stay_ff, stay_var, stay_rays, stay_row = _columns(stay)
+    del stay
     recv = np.concatenate([pair_node, stay_node] + [leaves[p[0]] for p in smooth_parts])
     pair_var = np.concatenate([g_var + g_shadow, stay_var])     # (the pairs', in on_node's order below)
     var_node = np.bincount(recv, weights=np.concatenate([pair_var] + [p[3] for p in smooth_parts]), minlength=n)
@@ -2316,6 +2320,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         by_entry.sum_duplicates()
         by_entry = by_entry.tocoo()
         sampled = (by_entry.row.astype(np.int64), by_entry.col.astype(np.int64), by_entry.data)
+        del by_entry
+    del log, pair_row, stay_row, pair_rays, stay_rays, g_shadow, g_var, stay_var
     recv = np.concatenate([on_node[by_mean], sampled[0]] + [leaves[p[0]] for p in smooth_parts])
     srcs = np.concatenate([from_src[by_mean], sampled[1]] + [p[1] for p in smooth_parts])
     ff = np.concatenate([node_ff[by_mean], sampled[2]] + [p[2] for p in smooth_parts])
@@ -2350,6 +2356,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     transfers = sp.csr_matrix((np.concatenate([links.ff[keep].astype(np.float64), ff]),
                                (np.concatenate([links.recv[keep], recv]), np.concatenate([links.src[keep], srcs]))),
                               shape=(n, n))
+    del recv, srcs, ff, hidden, src_error, sampled
     same = len(final_leaves) == n_leaf
     final = leaf_system(state, final_leaves, transfers, solved.system if same else None)
     start = solved.b_node.copy()
@@ -2378,6 +2385,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # arrived, the pairs without visibility noise, and the fits, whose points saw the whole source)
     item_seen = np.concatenate([visible_fraction(links.ff[keep], links.ff_unocc[keep]) >= 1.0 - 1e-6, pair_var == 0] +
                                [np.ones(len(p[0]), bool) for p in fit_items])
+    del fit_items, smooth_links_at, on_node, from_src, node_ff, face_sampled, by_mean, partly_hidden, pair_var
     fixed = None
     if SPREAD_OF_EVERY_TRANSFER:
         # (the sources' gradients read their leaves' light at the leaves' points from every
@@ -2391,8 +2399,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         fixed = (np.concatenate([links.recv[on_leaves].astype(np.int64)] + [leaves[p[0]] for p in smooth_parts]),
                  np.concatenate([links.src[on_leaves].astype(np.int64)] + [p[1] for p in smooth_parts]),
                  np.concatenate([spread_pts] + [p[5] for p in smooth_parts]), final.pull @ np.maximum(b, 0.0))
+        del spread_pts
+    del smooth_parts
     extra = linear_sources(state, final, final_leaves, to_leaves, pair_node, pair_src, g_pts,
-                           item_node.astype(np.int64), item_src.astype(np.int64), item_ff.astype(np.float64),
+                           item_node.astype(np.int64, copy=False), item_src.astype(np.int64, copy=False),
+                           item_ff.astype(np.float64, copy=False),
                            fixed, item_seen if SEEN_MOMENTS_UNTRACED else None) \
         if LINEAR_SOURCES else None
     if extra is not None:

@@ -376,18 +376,32 @@ def shared_target_weight(w: np.ndarray, rays: np.ndarray, recv: np.ndarray | Non
     return out
 
 
+#: Node pairs per chunk of ``centre_distance``: its (M, 3) temporaries over a large scene's
+#: tens of millions of gathered pairs held gigabytes at once.
+DISTANCE_CHUNK = 1 << 20
+
+
+def centre_distance(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(M,) m: from the centre of each node a to that of b (M,)."""
+    out = np.empty(len(a))
+    for i in range(0, len(a), DISTANCE_CHUNK):
+        j = i + DISTANCE_CHUNK
+        out[i:j] = row_norm(nodes.center[a[i:j]] - nodes.center[b[i:j]])
+    return out
+
+
 def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) the kernel's relative change across each source seen from its receiver, min(1,
     2 R_s / d) over the distance d between their centres: what turns a source's radiosity
     deviation into a transfer error (the source term)."""
-    dist = row_norm(nodes.center[recv] - nodes.center[src])
+    dist = centre_distance(nodes, recv, src)
     return np.minimum(1.0, 2.0 * nodes.radius[src] / np.maximum(dist, 1e-300))
 
 
 def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M,) m: from each receiver's centre to the nearest point of its source's bounding
     sphere (0 inside it)."""
-    return np.maximum(row_norm(nodes.center[recv] - nodes.center[src]) - nodes.radius[src], 0.0)
+    return np.maximum(centre_distance(nodes, recv, src) - nodes.radius[src], 0.0)
 
 
 def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
