@@ -994,6 +994,38 @@ def test_furnace_with_occluders_every_triangle_within_tolerance():
     assert sol.stats["estimated_error"] <= tol
 
 
+def _plant_canopy_cluster_links(kind: int, rays_per_point: int, picked) -> list:
+    """Links from the plant canopy's smaller volume clusters to up to 400 random nodes of
+    ``kind`` that picked(gap) keeps (gap (M,): from the receiver's centre to the cluster's
+    sphere, in its radii), evaluated at 12 seeds: the Links of each."""
+    from mirad.refine import link_values
+    from mirad.transfer import NodeBuffers, evaluate
+
+    scene = mirad.load_scene(SCENES / "plant-canopy" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+    nodes = state.nodes
+    vol = np.flatnonzero(nodes.kind == core.VOLUME)
+    rng = np.random.default_rng(3)
+    recv = rng.choice(np.flatnonzero(nodes.kind == kind), 4000)
+    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 4000)
+    chosen = np.flatnonzero(picked(core.distance_to_source(nodes, recv, src) / nodes.radius[src]))[:400]
+    recv, src = recv[chosen], src[chosen]
+    rays = np.full(len(recv), rays_per_point, np.int16)
+    buffers = NodeBuffers.upload(nodes)
+    return [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point,
+                                                   seed=seed, offset=state.offset), rays)
+            for seed in range(12)]
+
+
+def _predicted_over_spread(runs: list, predicted: np.ndarray) -> float:
+    """The predicted standard errors (M,) of the links of ``runs`` (one Links per seed) against
+    the spread of their transfers over the seeds, pooled over the links that got light."""
+    ff = np.array([r.ff for r in runs], np.float64)
+    seen = ff.mean(axis=0) > 0
+    assert seen.sum() > 50
+    return float(np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1))))
+
+
 @pytest.mark.parametrize("rays_per_point,where", [(4, "far"), (16, "far"), (4, "near"), (16, "near")])
 def test_volume_cluster_links_know_their_sampling_error(rays_per_point, where):
     """A link from a volume cluster is a Monte Carlo transfer; its standard error
@@ -1005,32 +1037,11 @@ def test_volume_cluster_links_know_their_sampling_error(rays_per_point, where):
     cluster too, within its sphere's diameter but outside the sphere, where since 2026-11-29 the
     passes take this error rather than the spheres' bound (``refine.NEAR_CLUSTER_GAP``): the
     samples, weighted by the kernel, know their error there as well."""
-    from mirad.refine import link_values
-    from mirad.transfer import NodeBuffers, evaluate
-
-    scene = mirad.load_scene(SCENES / "plant-canopy" / "scene.xml")
-    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
-    nodes = state.nodes
-    vol = np.flatnonzero(nodes.kind == core.VOLUME)
-    tri = np.flatnonzero(nodes.kind == core.TRIANGLE)
-    rng = np.random.default_rng(3)
-    recv = rng.choice(tri, 4000)
-    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 4000)
-    gap = core.distance_to_source(nodes, recv, src) / nodes.radius[src]
-    chosen = np.flatnonzero(gap > 2.0 if where == "far" else (gap > 0.0) & (gap <= 2.0))[:400]
-    recv, src = recv[chosen], src[chosen]
-    rays = np.full(len(recv), rays_per_point, np.int16)
-    buffers = NodeBuffers.upload(nodes)
-    runs = [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=rays_per_point,
-                                                   seed=seed, offset=state.offset), rays)
-            for seed in range(12)]
-    ff = np.array([r.ff for r in runs], np.float64)
-    predicted = np.mean([r.vis_std for r in runs], axis=0)
-    seen = ff.mean(axis=0) > 0
-    assert seen.sum() > 50
-    # pooled over the links: the predicted standard errors against the seeds' spread (the
-    # pooled variance counts the light's spread over the receiver as noise: conservative)
-    ratio = np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1)))
+    runs = _plant_canopy_cluster_links(core.TRIANGLE, rays_per_point,
+                                       lambda gap: gap > 2.0 if where == "far" else (gap > 0.0) & (gap <= 2.0))
+    # (pooled over the links: the predicted standard errors against the seeds' spread; the pooled
+    # variance counts the light's spread over the receiver as noise: conservative)
+    ratio = _predicted_over_spread(runs, np.mean([r.vis_std for r in runs], axis=0))
     assert 0.8 < ratio < 3.0, ratio
 
 
@@ -1044,30 +1055,9 @@ def test_volume_cluster_links_on_face_clusters_count_their_samples_in_the_mean()
     Counted as noise, a 1,000-leaf canopy's passes at 0.1 made 219,604 links and 65.9 M rays for
     0.65 % per leaf in 11.6 s; as the mean's error, 130,485 links and 39.5 M rays for 0.72 % in
     7.0 s. Outside the sphere the mean's error reads 1.6-2.0 times the seeds' spread."""
-    from mirad.refine import link_values
-    from mirad.transfer import NodeBuffers, evaluate
-
-    scene = mirad.load_scene(SCENES / "plant-canopy" / "scene.xml")
-    state = core.build(scene, make_settings(tolerance=0.1, **HIER))
-    nodes = state.nodes
-    vol = np.flatnonzero(nodes.kind == core.VOLUME)
-    face = np.flatnonzero(nodes.kind == core.FACE)
-    rng = np.random.default_rng(3)
-    recv = rng.choice(face, 4000)
-    src = rng.choice(vol[nodes.radius[vol] < 0.5 * nodes.radius[vol].max()], 4000)
-    chosen = np.flatnonzero(core.distance_to_source(nodes, recv, src) > 0.0)[:400]
-    recv, src = recv[chosen], src[chosen]
-    rays = np.full(len(recv), 4, np.int16)
-    buffers = NodeBuffers.upload(nodes)
-    runs = [link_values(nodes, recv, src, evaluate(scene.mi_scene, buffers, recv, src, rays_per_point=4,
-                                                   seed=seed, offset=state.offset), rays)
-            for seed in range(12)]
+    runs = _plant_canopy_cluster_links(core.FACE, 4, lambda gap: gap > 0.0)
     assert all((r.vis_std == 0).all() for r in runs)
-    ff = np.array([r.ff for r in runs], np.float64)
-    predicted = np.mean([r.err_ff for r in runs], axis=0)
-    seen = ff.mean(axis=0) > 0
-    assert seen.sum() > 50
-    ratio = np.sqrt(np.mean(predicted[seen] ** 2) / np.mean(ff[:, seen].var(axis=0, ddof=1)))
+    ratio = _predicted_over_spread(runs, np.mean([r.err_ff for r in runs], axis=0))
     assert 0.8 < ratio < 3.0, ratio
 
 
