@@ -94,6 +94,12 @@ def shadow_ray_length(dist, offset: float):
     return dr.maximum(dist - 0.5 * offset, 0.0)
 
 
+def row_slices(count: int, size: int):
+    """Slices over ``count`` rows, ``size`` at a time (none for no rows): a large scene's
+    millions of links or pairs in pieces whose temporaries stay small."""
+    return (slice(a, a + size) for a in range(0, count, size))
+
+
 def row_norm(v: np.ndarray) -> np.ndarray:
     """(...,) Euclidean length of the vectors v (..., 3) along the last axis (a third of the
     time of ``np.linalg.norm(v, axis=-1)`` on the gather's millions of pairs)."""

@@ -45,7 +45,7 @@ from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, escaping_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
-from .arrays import RAY_OFFSET, channel_max, row_norm, shadow_ray_length, to_bool, to_uint, to_vector3
+from .arrays import RAY_OFFSET, channel_max, row_norm, row_slices, shadow_ray_length, to_bool, to_uint, to_vector3
 from .visibility import hash_u32, opaque_u32, to_unit
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
@@ -840,7 +840,7 @@ PART_LEVELS = 1
 
 def _chunks(count: int):
     """Slices over ``count`` rows, GATHER_CHUNK at a time (none for no rows)."""
-    return (slice(a, a + GATHER_CHUNK) for a in range(0, count, GATHER_CHUNK))
+    return row_slices(count, GATHER_CHUNK)
 
 
 #: Shadow rays per quadrature point in the final gather, and the factor by which a pair

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .arrays import row_norm
+from .arrays import row_norm, row_slices
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
 from .transfer import PointTransfers, pattern_size, ray_target
@@ -384,9 +384,8 @@ DISTANCE_CHUNK = 1 << 20
 def centre_distance(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(M,) m: from the centre of each node a to that of b (M,)."""
     out = np.empty(len(a))
-    for i in range(0, len(a), DISTANCE_CHUNK):
-        j = i + DISTANCE_CHUNK
-        out[i:j] = row_norm(nodes.center[a[i:j]] - nodes.center[b[i:j]])
+    for part in row_slices(len(a), DISTANCE_CHUNK):
+        out[part] = row_norm(nodes.center[a[part]] - nodes.center[b[part]])
     return out
 
 
