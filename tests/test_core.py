@@ -722,10 +722,12 @@ def test_near_receivers_judge_a_source_by_the_range_of_its_leaves(monkeypatch):
     # back what its gradients move out of the open box: the error fell from 1.05 % to 0.64 % of
     # the reflected light, the estimate stayed at 1.65 %, most of it the pairs' visibility noise,
     # taken as that of independent rays while the spread rays are a stratified set)
-    pytest.param(0.05, marks=pytest.mark.xfail(strict=True, reason="estimate 2.6x the measured error")),
-    # (and here 2.3 times since the linear sources' moments take each part's own visibility,
-    # 2026-11-28: the error fell to 0.40 % of the reflected light, the estimate stayed at 0.92 %)
-    pytest.param(0.03, marks=pytest.mark.xfail(strict=True, reason="estimate 2.3x the measured error"))])
+    # (2026-11-29: the error 0.28 % of the reflected light, the estimate 0.86 %, 3.1 times, most of
+    # it the bounds of the links kept on leaves and the sources' means; the gathered noise counted
+    # per triangle, ``core.triangle_noise``, where it read 5.7 times summed leaf by leaf)
+    pytest.param(0.05, marks=pytest.mark.xfail(strict=True, reason="estimate 3.1x the measured error")),
+    # (2.3-3.3 times here until the gathered noise was counted per triangle: 0.43 % for 0.27 %)
+    0.03])
 def test_the_estimate_is_within_twice_the_measured_error_on_the_cornell_box(tol):
     """Issue 16's error control: the output estimate (irradiance errors over the mean
     irradiance) within a factor 2 of the measured area-weighted L1 of the reflected
