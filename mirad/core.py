@@ -826,6 +826,9 @@ class Gathered:
     regathered: np.ndarray | None = None  # (M,) bool: links whose transfers it replaced
     source_power: np.ndarray | None = None  # (L',) W: its transfers' source terms (as refine's)
     iterations_max: int = 0      # the most iterations any one of its solves took
+    #: (L',) W: ``noise_power`` as the output counts it, per input triangle (``triangle_noise``),
+    #: shared out to its leaves; None: as ``noise_power``
+    triangle_noise_power: np.ndarray | None = None
 
 
 #: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
@@ -966,7 +969,8 @@ def triangle_noise(state: State, leaves: np.ndarray, to_leaves: sp.csr_matrix, i
     summed to sum_l w_l sigma_l, sqrt(n) times more on a triangle of n leaves with alike errors.
     (The 36-triangle Cornell box at tolerance 0.05 gathers on 43 leaves a triangle: its
     estimate read 5.7 times the measured error per triangle.) Each leaf keeps its share of its
-    triangle's error in proportion to its own, with its shared errors in quadrature."""
+    triangle's error in proportion to its own, with its shared errors in quadrature: summed over
+    the leaves, the output's estimate; a leaf's own error (the error map) is ``noise_power``'s."""
     nodes = state.nodes
     rho = lambda ids: channel_max(state.patch_rho[nodes.patch[ids]]) if ERRORS_OF == "radiosity" else 1.0
     weight = rho(leaves) * nodes.area[leaves]
@@ -2482,8 +2486,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     if BALANCE_DIRECT:
         # (the gathered transfers' error, leaf by leaf: their noise and their sources' means)
         balance_direct(state, final_leaves, float((output_weight(state, final_leaves) * (noise + source_power)).sum()))
-    if NOISE_PER_TRIANGLE:
-        noise = triangle_noise(state, final_leaves, to_leaves, pair_var_node, np.maximum(var_node - pair_var_node, 0.0))
+    per_triangle = triangle_noise(state, final_leaves, to_leaves, pair_var_node,
+                                  np.maximum(var_node - pair_var_node, 0.0)) if NOISE_PER_TRIANGLE else None
     # the system again, with every link on an inner node replaced by its leaves' own
     # transfers: each leaf then gathers from the sources' means what reaches its own points,
     # and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered mean
@@ -2561,7 +2565,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time - \
         (state.timing["direct"] - direct_before)
     return Gathered(h_leaf, noise, int(iterations), evaluated, final_leaves, final,
-                    inner[links.recv] | on_leaf, source_power, int(iterations_max))
+                    inner[links.recv] | on_leaf, source_power, int(iterations_max), per_triangle)
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -2806,7 +2810,8 @@ def output_estimate(state: State, est: Estimate, gathered: Gathered) -> Estimate
         np.zeros(len(gathered.leaves))
     # (the gather's noise and source terms weigh as the leaves' other errors, ``output_weight``)
     weight = output_weight(state, gathered.leaves)
-    total = float(receiver.sum() + source.sum() + direct.sum() + (weight * gathered.noise_power).sum() +
+    noise = gathered.noise_power if gathered.triangle_noise_power is None else gathered.triangle_noise_power
+    total = float(receiver.sum() + source.sum() + direct.sum() + (weight * noise).sum() +
                   (weight * gathered.source_power).sum())
     return replace(est, receiver=receiver, source=source, direct=direct,
                    relative=total / max(state.counted_area * est.reference_mean, 1e-300))
@@ -2893,6 +2898,8 @@ def solve_hierarchical(scene: Scene, settings: Settings, max_links: int, *, eval
         per_area[solved.leaves, 0] = far_noise / nodes.area[solved.leaves]
         far_noise = inherited(state, per_area, gathered.leaves)[:, 0] * nodes.area[gathered.leaves]
     gathered.noise_power = gathered.noise_power + far_noise
+    if gathered.triangle_noise_power is not None:
+        gathered.triangle_noise_power = gathered.triangle_noise_power + far_noise
     est = output_estimate(state, est, gathered)
     if capped:
         warn(f"refinement stopped at max_links={max_links:,} ({len(state.links):,} links); the estimate "
@@ -2922,10 +2929,17 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
     buried_emission = state.patch_emission[nodes.patch[leaves]] * state.buried[leaves][:, None]
     b_leaf = np.maximum(system.emission + system.scatter(gathered.irradiance), 0.0) + buried_emission
     per_node = np.bincount(state.links.recv, weights=est.link_errors, minlength=len(nodes))
-    err_leaf = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
-        (est.direct + output_weight(state, leaves) * (gathered.noise_power + gathered.source_power)) / nodes.area[leaves]
-    if ERRORS_OF == "irradiance":      # (an irradiance error; the map is of the radiosity)
-        err_leaf = err_leaf * system.rho.max(axis=1)
+
+    def error_map(noise: np.ndarray) -> np.ndarray:
+        """(L,) W/m^2: each leaf's estimated radiosity error with the gathered noise ``noise`` (L,) W."""
+        err = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
+            (est.direct + output_weight(state, leaves) * (noise + gathered.source_power)) / nodes.area[leaves]
+        # (an irradiance error; the map is of the radiosity)
+        return err * system.rho.max(axis=1) if ERRORS_OF == "irradiance" else err
+
+    # (a leaf's own error, and its share of its triangle's, whose sum over the leaves is the estimate)
+    err_leaf = error_map(gathered.noise_power)
+    err_share = None if gathered.triangle_noise_power is None else error_map(gathered.triangle_noise_power)
     area_leaf = nodes.area[leaves]
     mean_b = float((area_leaf[:, None] * b_leaf).sum() / max(area_leaf.sum() * b_leaf.shape[1], 1e-300)) or 1e-300
     state.timing["total"] = time.perf_counter() - t_start
@@ -2977,7 +2991,10 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
         sorted({str(scene.shape_ids[k]) for k in np.unique(scene.tri_shape[state.patch_tri[state.counted]])}),
     }
     err_leaf = np.repeat(err_leaf[:, None], b_leaf.shape[1], axis=1)
+    if err_share is not None:
+        err_share = np.repeat(err_share[:, None], b_leaf.shape[1], axis=1)
     patch = nodes.patch[leaves]
     return Solution.from_arrays(scene, leaf_vertices=nodes.poly[leaves, :3], leaf_patch=patch,
                                 leaf_normal=state.surface.normal[patch], leaf_radiosity=b_leaf,
-                                leaf_irradiance=h_leaf, leaf_error=err_leaf, stats=stats)
+                                leaf_irradiance=h_leaf, leaf_error=err_leaf, stats=stats,
+                                leaf_error_share=err_share)

@@ -443,7 +443,8 @@ def bake_lightmaps(solution, *, resolution: int = 256, supersample: int | None =
     if quantity not in ("radiosity", "error"):
         raise SettingsError(f"lightmap quantity={quantity!r} must be 'radiosity' or 'error'")
     shading = Shading(solution)
-    b_leaf = np.asarray(solution.leaf_radiosity if quantity == "radiosity" else solution.leaf_error, np.float64)
+    b_leaf = np.asarray(solution.leaf_radiosity if quantity == "radiosity" else solution.leaf_error_share,
+                        np.float64)
     b_tri = solution.triangle_radiosity if quantity == "radiosity" else solution.triangle_error
     maps = {}
     baked = [s for s in range(len(solution.shape_ids)) if np.any((shape_of == s) & has_uv)]

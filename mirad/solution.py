@@ -62,7 +62,8 @@ class Solution:
     # --- construction ---------------------------------------------------------------------
     @classmethod
     def from_arrays(cls, scene, *, leaf_vertices, leaf_patch, leaf_normal, leaf_radiosity, leaf_irradiance,
-                    leaf_error, stats: dict, detail_leaves=None, leaf_detail=None) -> "Solution":
+                    leaf_error, stats: dict, detail_leaves=None, leaf_detail=None,
+                    leaf_error_share=None) -> "Solution":
         """A solution of ``scene`` (a mirad Scene) from per-leaf arrays.
 
         Parameters
@@ -74,6 +75,9 @@ class Solution:
             radiosity, irradiance and estimated absolute error of the radiosity per leaf
             (one channel is widened to the scene's C)
         stats : dict                              solve statistics (see ``Solution.stats``)
+        leaf_error_share : (L, C) or (L, 1) float or None, W/m^2
+            each leaf's share of its input triangle's estimated error (its leaves' independent
+            errors partly cancel in the triangle's mean); None: ``leaf_error``
         detail_leaves : (D,) int or None          leaves with shadow-texture detail
         leaf_detail : (D, R, R, C) or (D, R, R, 1) float or None, W/m^2   their detail textures
         """
@@ -105,6 +109,8 @@ class Solution:
             leaf = scene.tri_leaf[:, None]
             arrays["triangle_tau"] = np.where(leaf, scene.tri_transmittance, 0.0)
             arrays["back_tau"] = np.where(leaf, scene.back_transmittance, 0.0)
+        if leaf_error_share is not None:
+            arrays["leaf_error_share"] = widen(leaf_error_share)
         if detail_leaves is not None and len(detail_leaves):
             arrays["detail_leaf"] = np.asarray(detail_leaves, np.int32)
             arrays["leaf_detail"] = widen(leaf_detail, axis=3)
@@ -160,6 +166,13 @@ class Solution:
     def leaf_error(self) -> np.ndarray:
         """(L, C) float, W/m^2: estimated absolute error of ``leaf_radiosity``."""
         return self._arrays["leaf_error"]
+
+    @property
+    def leaf_error_share(self) -> np.ndarray:
+        """(L, C) float, W/m^2: each leaf's share of its input triangle's estimated error, whose
+        area mean over the triangle is ``triangle_error`` (the leaves' independent errors add in
+        quadrature over the triangle); ``leaf_error`` where the solve gave no shares."""
+        return self._arrays.get("leaf_error_share", self.leaf_error)
 
     @property
     def leaf_area(self) -> np.ndarray:
@@ -329,8 +342,10 @@ class Solution:
 
     @property
     def triangle_error(self) -> np.ndarray:
-        """(T, C) float, W/m^2: estimated absolute error of ``triangle_radiosity``."""
-        return self._side(self._per_patch(self.leaf_error), 0)
+        """(T, C) float, W/m^2: estimated absolute error of ``triangle_radiosity``: the area mean of
+        its leaves' shares of it (independent errors of the leaves add in quadrature over the
+        triangle; ``leaf_error`` is each leaf's own)."""
+        return self._side(self._per_patch(self.leaf_error_share), 0)
 
     @property
     def back_radiosity(self) -> np.ndarray:
