@@ -35,8 +35,8 @@ from tqdm.auto import tqdm
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
                     build_nodes, split_triangles)
-from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Decision, Links, SourceState, choose,
-                     distance_to_source, face_mean_errors, holding_chains_opened, holds_receiver, kernel_change,
+from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Decision, Links, SourceState, centre_distance,
+                     choose, distance_to_source, face_mean_errors, holding_chains_opened, holds_receiver, kernel_change,
                      link_values, power_errors, reciprocal_error, noise_visibility, refinement_threshold, unresolved,
                      unseen_in_front, visible_fraction, volume_transfer_std)
 from .scene import Scene
@@ -1571,12 +1571,12 @@ def radiosity_range(below: sp.csr_matrix, b_leaf: np.ndarray, open_area: np.ndar
 
 
 def seen_variation(nodes: Nodes, recv: np.ndarray, src: np.ndarray, varies: np.ndarray,
-                   spread: np.ndarray | None) -> np.ndarray:
+                   spread: np.ndarray | None, dist: np.ndarray | None = None) -> np.ndarray:
     """(M,) how far the light of each source src (M,) varies as its receiver recv (M,) sees it,
     relative to the brightest radiosity: ``varies`` (N,), its children's deviation
     (``children_deviation``), or, where the receiver's centre lies inside the source's bounding
     sphere, at least ``spread`` (N,), the range of the leaves' radiosities below the source
-    (``radiosity_range``; None: the deviation alone).
+    (``radiosity_range``; None: the deviation alone). ``dist``: as ``distance_to_source``'s.
 
     The children's means weigh the source's parts evenly, as a far receiver's kernel does. A near
     receiver's kernel weighs the part next to it, and that part's light may differ from the mean
@@ -1587,7 +1587,7 @@ def seen_variation(nodes: Nodes, recv: np.ndarray, src: np.ndarray, varies: np.n
     v = varies[src]
     if spread is None:
         return v
-    near = distance_to_source(nodes, recv, src) <= 0.0
+    near = distance_to_source(nodes, recv, src, dist) <= 0.0
     return np.where(near, np.maximum(v, spread[src]), v)
 
 
@@ -1936,11 +1936,11 @@ def _leaves_below(below: sp.csr_matrix, leaves: np.ndarray, ids: np.ndarray) -> 
     return leaves[position], owner
 
 
-def overhangs(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+def overhangs(nodes: Nodes, recv: np.ndarray, src: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
     """(M,) bool: face-cluster sources src whose rectangle only bounds their triangles (fill < 1)
     and lies nearer to receivers recv than its size: there the overhang may be the part
-    nearest to the receiver, light the cluster does not send."""
-    return (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src) <= 2.0 * nodes.radius[src]) & \
+    nearest to the receiver, light the cluster does not send. ``dist``: as ``distance_to_source``'s."""
+    return (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src, dist) <= 2.0 * nodes.radius[src]) & \
         (nodes.kind[src] == FACE)
 
 
@@ -2298,13 +2298,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     def uneven_or_overhanging(pairs: list) -> np.ndarray:
         """(M,) bool: the pairs whose source gathers from its children instead."""
         pair_node, pair_src, pair_rays, g_ff = pairs[:4]
-        overhang = overhangs(nodes, pair_node, pair_src)
+        dist = centre_distance(nodes, pair_node, pair_src)
+        overhang = overhangs(nodes, pair_node, pair_src, dist)
         # a source whose children differ, as seen across it from the leaf (refine.power_errors'
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
-        uneven = uneven_source(g_ff, b_src[pair_src], seen_variation(nodes, pair_node, pair_src, varies, b_range),
-                               mean_error_order(nodes, pair_node, pair_src, fitted, hidden=pairs[4] > 0),
+        uneven = uneven_source(g_ff, b_src[pair_src], seen_variation(nodes, pair_node, pair_src, varies, b_range, dist),
+                               mean_error_order(nodes, pair_node, pair_src, fitted, hidden=pairs[4] > 0,
+                                                change=kernel_change(nodes, pair_node, pair_src, dist)),
                                h_node[pair_node], tol)
         volume = nodes.kind[pair_src] == VOLUME
         return (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | uneven) & ~volume
@@ -2474,8 +2476,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (a pair with part of its source hidden errs at first order, ``mean_error_order``)
     hidden = np.concatenate([partly_hidden[by_mean],
                              np.zeros(len(recv) - int(by_mean.sum()), bool)])
-    src_error = ff * b_src[srcs] * (varies[srcs] * mean_error_order(nodes, recv, srcs, fitted, hidden) +
-                                    own_varies[srcs] * kernel_change(nodes, recv, srcs))
+    change = kernel_change(nodes, recv, srcs)
+    src_error = ff * b_src[srcs] * (varies[srcs] * mean_error_order(nodes, recv, srcs, fitted, hidden, change) +
+                                    own_varies[srcs] * change)
     src_var_node = np.bincount(recv, minlength=n, weights=src_error * src_error)
     to_leaves = ancestor_matrix(nodes, final_leaves)
     var = to_leaves @ var_node
@@ -2496,7 +2499,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     transfers = sp.csr_matrix((np.concatenate([links.ff[keep].astype(np.float64), ff]),
                                (np.concatenate([links.recv[keep], recv]), np.concatenate([links.src[keep], srcs]))),
                               shape=(n, n))
-    del recv, srcs, ff, hidden, src_error, sampled
+    del recv, srcs, ff, hidden, src_error, sampled, change
     same = len(final_leaves) == n_leaf
     final = leaf_system(state, final_leaves, transfers, solved.system if same else None)
     start = solved.b_node.copy()
@@ -2645,7 +2648,7 @@ def gradient_sent(state: State, below: sp.csr_matrix, leaves: np.ndarray) -> np.
 
 
 def mean_error_order(nodes: Nodes, recv: np.ndarray, src: np.ndarray, fitted: np.ndarray,
-                     hidden: np.ndarray | bool = False) -> np.ndarray:
+                     hidden: np.ndarray | bool = False, change: np.ndarray | None = None) -> np.ndarray:
     """(M,) what turns a source's radiosity deviation into the error of sending it with its
     mean: the kernel's relative change across it (``refine.kernel_change``), squared where its
     gradient is sent too (``fitted``): the least-squares plane leaves a residual with no mean
@@ -2656,8 +2659,9 @@ def mean_error_order(nodes: Nodes, recv: np.ndarray, src: np.ndarray, fitted: np
     sees changes wholly across the source, whatever its distance; squared or not, the kernel's
     smooth change does not weigh that. (Weighed so, a ceiling cell straddling a partition that
     pierces the floor sent its lit part's mean to the dark side: the dark floor read 0.95 / 0.80
-    / 0.83 % of the lit side at seeds 0-2, 0.83 / 0.64 / 0.66 % now.)"""
-    change = kernel_change(nodes, recv, src)
+    / 0.83 % of the lit side at seeds 0-2, 0.83 / 0.64 / 0.66 % now.) ``change``: the kernel's
+    change, where the caller has it."""
+    change = kernel_change(nodes, recv, src) if change is None else change
     return np.where(hidden, 1.0, np.where(fitted[src], change * change, change))
 
 

@@ -389,18 +389,20 @@ def centre_distance(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+def kernel_change(nodes: Nodes, recv: np.ndarray, src: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
     """(M,) the kernel's relative change across each source seen from its receiver, min(1,
-    2 R_s / d) over the distance d between their centres: what turns a source's radiosity
-    deviation into a transfer error (the source term)."""
-    dist = centre_distance(nodes, recv, src)
+    2 R_s / d) over the distance d between their centres (``dist`` (M,), ``centre_distance``'s,
+    where the caller has it): what turns a source's radiosity deviation into a transfer error
+    (the source term)."""
+    dist = centre_distance(nodes, recv, src) if dist is None else dist
     return np.minimum(1.0, 2.0 * nodes.radius[src] / np.maximum(dist, 1e-300))
 
 
-def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
+def distance_to_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
     """(M,) m: from each receiver's centre to the nearest point of its source's bounding
-    sphere (0 inside it)."""
-    return np.maximum(centre_distance(nodes, recv, src) - nodes.radius[src], 0.0)
+    sphere (0 inside it); ``dist`` (M,): ``centre_distance``'s, where the caller has it."""
+    dist = centre_distance(nodes, recv, src) if dist is None else dist
+    return np.maximum(dist - nodes.radius[src], 0.0)
 
 
 def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
