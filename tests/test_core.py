@@ -661,6 +661,28 @@ def test_volume_samples_split_their_waves_transfer_by_triangle():
         assert (ancestor == src[link]).all()
 
 
+def _room_shelves_signed(monkeypatch, flag: str, tol: float) -> dict:
+    """{False: (2,), True: (2,)}: the furnished room's two shelves' signed relative error (their
+    summed radiosity over a 1,024-path reference's, minus one) solved at ``tol`` (seed 0) with
+    ``core.<flag>`` off and on."""
+    from mirad.reference import triangle_reference
+
+    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
+    shelves = [np.flatnonzero(scene.tri_shape == scene.shape_index(f"shelf-{i}")) for i in (1, 2)]
+    tris = np.concatenate(shelves)
+    ref = triangle_reference(scene, samples_per_triangle=1024, seed=3, triangles=tris).radiosity
+    signed = {}
+    for on in (False, True):
+        monkeypatch.setattr(core, flag, on)
+        sol = mirad.solve(scene, tolerance=tol, seed=0, **HIER)
+        out = []
+        for shelf in shelves:
+            a, r = scene.tri_area[shelf][:, None], ref[np.searchsorted(tris, shelf)]
+            out.append(float((a * (sol.triangle_radiosity[shelf] - r)).sum() / (a * r).sum()))
+        signed[on] = np.array(out)
+    return signed
+
+
 def test_volume_cluster_transfers_bring_their_triangles_own_radiosity(monkeypatch):
     """core.OWN_RADIOSITY (on by default; here off against on): a gathered transfer from a
     volume cluster brings each sampled triangle's radiosity, not the cluster's mean. At a
@@ -668,23 +690,8 @@ def test_volume_cluster_transfers_bring_their_triangles_own_radiosity(monkeypatc
     that hold the ceiling lamp: with the mean they read +115 % and +69 % (the lamp's share of
     the cluster brought as if it were spread over all of it), with their own triangles +2 % and
     -11 %. Against a path-traced reference of the shelves, each within a third of the tolerance."""
-    from mirad.reference import triangle_reference
-
     tol = 0.9
-    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
-    shelves = [np.flatnonzero(scene.tri_shape == scene.shape_index(f"shelf-{i}")) for i in (1, 2)]
-    tris = np.concatenate(shelves)
-    ref = triangle_reference(scene, samples_per_triangle=1024, seed=3, triangles=tris).radiosity
-    signed = {}
-    for on in (False, True):
-        monkeypatch.setattr(core, "OWN_RADIOSITY", on)
-        sol = mirad.solve(scene, tolerance=tol, seed=0, **HIER)
-        out = []
-        for shelf in shelves:
-            a = scene.tri_area[shelf][:, None]
-            r = ref[np.searchsorted(tris, shelf)]
-            out.append(float((a * (sol.triangle_radiosity[shelf] - r)).sum() / (a * r).sum()))
-        signed[on] = np.array(out)
+    signed = _room_shelves_signed(monkeypatch, "OWN_RADIOSITY", tol)
     assert np.abs(signed[True]).max() <= tol / 3, signed
     assert np.abs(signed[False]).max() > tol / 3, signed
 
@@ -698,21 +705,8 @@ def test_near_receivers_judge_a_source_by_the_range_of_its_leaves(monkeypatch):
     0.3 the shelves read +9.5 % and +7.6 % with the children's means, +5.2 % and +2.8 % with the
     range (seed 0; +7.0-7.8 % and +1.1-2.4 % at seeds 1-2), against a path-traced reference:
     the mean excess over both must fall by a third at least."""
-    from mirad.reference import triangle_reference
-
     tol = 0.3
-    scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
-    shelves = [np.flatnonzero(scene.tri_shape == scene.shape_index(f"shelf-{i}")) for i in (1, 2)]
-    tris = np.concatenate(shelves)
-    ref = triangle_reference(scene, samples_per_triangle=1024, seed=3, triangles=tris).radiosity
-    excess = {}
-    for on in (False, True):
-        monkeypatch.setattr(core, "NEAR_SOURCE_RANGE", on)
-        sol = mirad.solve(scene, tolerance=tol, seed=0, **HIER)
-        excess[on] = []
-        for shelf in shelves:
-            a, r = scene.tri_area[shelf][:, None], ref[np.searchsorted(tris, shelf)]
-            excess[on].append(float((a * (sol.triangle_radiosity[shelf] - r)).sum() / (a * r).sum()))
+    excess = _room_shelves_signed(monkeypatch, "NEAR_SOURCE_RANGE", tol)
     assert np.mean(excess[True]) < 2 / 3 * np.mean(excess[False]), excess
     assert np.abs(excess[True]).max() <= tol / 3, excess
 
