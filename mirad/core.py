@@ -972,7 +972,10 @@ def triangle_noise(state: State, leaves: np.ndarray, to_leaves: sp.csr_matrix, i
     triangle's error in proportion to its own, with its shared errors in quadrature: summed over
     the leaves, the output's estimate; a leaf's own error (the error map) is ``noise_power``'s."""
     nodes = state.nodes
-    rho = lambda ids: channel_max(state.patch_rho[nodes.patch[ids]]) if ERRORS_OF == "radiosity" else 1.0
+
+    def rho(ids: np.ndarray) -> np.ndarray | float:
+        return channel_max(state.patch_rho[nodes.patch[ids]]) if ERRORS_OF == "radiosity" else 1.0
+
     weight = rho(leaves) * nodes.area[leaves]
     by_leaf = EXPECTED_ABS * weight * np.sqrt(to_leaves @ independent)
     m = np.flatnonzero(independent > 0)
@@ -1403,7 +1406,11 @@ UNEVEN_FIT_LEAVES = True
 #: unevenness by the range of the leaves' radiosities below it (``seen_variation``), not by its
 #: children's deviation alone.
 NEAR_SOURCE_RANGE = True
+#: Whether leaves below a fit that take the exact kernel at their own points carry no share of the
+#: fit's residual in the estimate (they interpolate nothing).
 EXACT_LEAVES_UNINTERPOLATED = True
+#: Whether the output's estimate adds the gathered pairs' independent noise in quadrature over each
+#: input triangle (``triangle_noise``), not leaf by leaf.
 NOISE_PER_TRIANGLE = True
 #: Whether the fitted leaves' shadow checks wait until the descent has made every fit (one wave,
 #: each leaf's rays shared out by its fits' light, ``_check_fitted_leaves``).
