@@ -2185,7 +2185,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven_source((nodes.recv_w[recv] * gv).sum(axis=1), b_src[src], varies_fit[src],
+                uneven_source((nodes.recv_w[recv] * gv).sum(axis=1), b_src[src],
+                              seen_variation(nodes, recv, src, varies_fit, b_range),
                               mean_error_order(nodes, recv, src, fitted), h_node[recv], tol)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)
