@@ -2102,7 +2102,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     h_node = above @ (links.matrix(n) @ b_src) + direct_node_irradiance(state, below, leaves)
     # (how many of the passes' links each node takes, its own and its ancestors': at most so
     # many fits share a leaf's checks, ``check_rays``)
-    links_above = above @ np.bincount(links.recv, minlength=n).astype(np.float64)
+    links_above = above @ np.bincount(links.recv, minlength=n).astype(np.float64) \
+        if CHECK_FITTED_SHADOWS and not CHECKS_AFTER_DESCENT else None
     on_inner = np.flatnonzero(inner[links.recv])
     # links whose own rays disagreed trace GATHER_RAYS per point (shadow edges are where the
     # gather's noise is), the others one
@@ -2143,6 +2144,16 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # (nodes with a curved patch at or below them: their points may lie outside their sphere;
     # a periodic source's images may lie in front of its plane)
     curved = (below @ (nodes.curve[leaves, 6] > 0).astype(np.float64)) > 0
+
+    def uneven(ff: np.ndarray, recv: np.ndarray, src: np.ndarray, varies_of: np.ndarray, hidden=False,
+               dist: np.ndarray | None = None) -> np.ndarray:
+        """(M,) bool: transfers recv <- src of form factor ff whose source's light, as the receiver
+        sees it (``seen_variation`` of ``varies_of``), errs by more than their share of the
+        tolerance at its mean (``uneven_source``); ``dist``: their centre distances, if known."""
+        dist = centre_distance(nodes, recv, src) if dist is None else dist
+        return uneven_source(ff, b_src[src], seen_variation(nodes, recv, src, varies_of, b_range, dist),
+                             mean_error_order(nodes, recv, src, fitted, hidden, kernel_change(nodes, recv, src, dist)),
+                             h_node[recv], tol)
 
     def dark(node: np.ndarray, source: np.ndarray) -> np.ndarray:
         """(M,) bool: pairs node <- source whose transfer is exactly 0 (``behind_source``)."""
@@ -2192,9 +2203,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven_source((nodes.recv_w[recv] * gv).sum(axis=1), b_src[src],
-                              seen_variation(nodes, recv, src, varies_fit, b_range),
-                              mean_error_order(nodes, recv, src, fitted), h_node[recv], tol)
+                uneven((nodes.recv_w[recv] * gv).sum(axis=1), recv, src, varies_fit)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)
         leaf, owner = _leaf_positions_below(below, recv[ok])
@@ -2221,9 +2230,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # where the kernel weighs the source's near part, it is judged as a pair would be)
             near_ff = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
             near = leaves[leaf]
-            across |= uneven_source(np.maximum(near_ff, 0.0), b_src[src[k]],
-                                    seen_variation(nodes, near, src[k], varies_fit, b_range),
-                                    mean_error_order(nodes, near, src[k], fitted), h_node[near], tol) & \
+            across |= uneven(np.maximum(near_ff, 0.0), near, src[k], varies_fit) & \
                 (nodes.children[src[k], 0] >= 0) & (nodes.kind[src[k]] != VOLUME)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
@@ -2319,12 +2326,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
-        uneven = uneven_source(g_ff, b_src[pair_src], seen_variation(nodes, pair_node, pair_src, varies, b_range, dist),
-                               mean_error_order(nodes, pair_node, pair_src, fitted, hidden=pairs[4] > 0,
-                                                change=kernel_change(nodes, pair_node, pair_src, dist)),
-                               h_node[pair_node], tol)
+        varied = uneven(g_ff, pair_node, pair_src, varies, pairs[4] > 0, dist)
         volume = nodes.kind[pair_src] == VOLUME
-        return (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | uneven) & ~volume
+        return (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | varied) & ~volume
 
     columns, seconds, count = _source_descent(state, solved, log, pairs_now, uneven_or_overhanging,
                                               int(nodes.depth.max()) + tree_depth(nodes))
