@@ -164,7 +164,9 @@ class Solution:
 
     @property
     def leaf_error(self) -> np.ndarray:
-        """(L, C) float, W/m^2: estimated absolute error of ``leaf_radiosity``."""
+        """(L, C) float, W/m^2: estimated absolute error of ``leaf_radiosity`` (on the
+        hierarchical core each channel's in proportion to the leaf's light in it: the errors
+        are of transfers, which carry every channel alike)."""
         return self._arrays["leaf_error"]
 
     @property

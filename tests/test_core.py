@@ -809,7 +809,10 @@ def test_a_closed_furnished_room_absorbs_the_power_it_emits(monkeypatch):
     percent in every channel. With the checks held to the noise's allowance the room absorbs more
     than it emits in every channel: 0.8 % until near receivers judged their sources by the range
     of the leaves' light (``core.NEAR_SOURCE_RANGE``, which sends the fits' nearest leaves to
-    their own points), 0.27-0.36 % since."""
+    their own points), 0.27-0.36 % since. The checks starting at the leaf's points in turn
+    (``core.CHECKS_FROM_POINTS``) find the shadows over part of a leaf that the centroid's rays
+    missed and take most of that excess away by themselves (0.04-0.17 % held as bias, 0.15-0.25 %
+    as noise): the contrast undoes both."""
     from mirad import export, refine
 
     scene = mirad.load_scene(SCENES / "furnished-room" / "scene.xml")
@@ -818,6 +821,7 @@ def test_a_closed_furnished_room_absorbs_the_power_it_emits(monkeypatch):
     for mended in ("none undone", "blocked taken as certain", "checks held as noise"):
         monkeypatch.setattr(refine, "BLOCKED_NOT_CERTAIN", mended != "blocked taken as certain")
         monkeypatch.setattr(core, "CHECK_AS_BIAS", mended != "checks held as noise")
+        monkeypatch.setattr(core, "CHECKS_FROM_POINTS", mended != "checks held as noise")
         sol = mirad.solve(scene, tolerance=0.15, seed=0, **HIER)
         lost[mended] = 1.0 - export.triangle_table(sol)["absorbed"].sum(axis=0) / emitted
     assert np.abs(lost["none undone"]).max() < 0.005, lost
@@ -1213,17 +1217,18 @@ def test_linear_sources_see_which_part_of_a_source_is_hidden():
 @pytest.mark.parametrize("tol", [0.1, 0.05])
 def test_the_error_map_integrates_to_the_estimate_in_its_norm(tol):
     """The hierarchical core bounds irradiance errors (refine.ERRORS_OF) and maps them as
-    radiosity errors, rho times the irradiance error per triangle (``Solution.triangle_error``):
-    over the brightest channel's reflectance that map, integrated over the area and divided
-    by the area times the mean irradiance, is the estimate (the coloured walls of the Cornell
-    box put the reflected-radiosity norm 24 % away from it)."""
+    radiosity errors, rho times the irradiance error per triangle and channel
+    (``Solution.triangle_error``; the channels share a leaf's error as they share its light):
+    over each channel's reflectance that map, integrated over the area and the channels and
+    divided by the same integral of the irradiance, is the estimate (the coloured walls of the
+    Cornell box put the reflected-radiosity norm 24 % away from it)."""
     scene = mirad.load_scene(SCENES / "cornell-box" / "scene.xml")
     sol = mirad.solve(scene, tolerance=tol, **HIER)
     a = sol.triangle_area[:, None]
-    rho = scene.tri_rho.max(axis=1, keepdims=True)
-    lit = rho[:, 0] > 0
-    irradiance_error = sol.triangle_error[lit] / rho[lit]
-    integral = float((a[lit] * irradiance_error).sum() / (a * sol.triangle_irradiance).sum())
+    rho = scene.tri_rho
+    assert np.all(rho > 0)
+    irradiance_error = sol.triangle_error / rho
+    integral = float((a * irradiance_error).sum() / (a * sol.triangle_irradiance).sum())
     assert np.all(sol.triangle_error >= 0) and integral > 0
     assert integral == pytest.approx(sol.stats["estimated_error"], rel=0.05)
 
