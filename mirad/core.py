@@ -1406,6 +1406,17 @@ UNEVEN_FIT_LEAVES = True
 #: unevenness by the range of the leaves' radiosities below it (``seen_variation``), not by its
 #: children's deviation alone.
 NEAR_SOURCE_RANGE = True
+#: Whether the fits' sources take that range from the leaves' radiosities with the links' planes
+#: pushed down (``varied_leaf_radiosity``), as their children's deviation is (VARIED_SOURCES), not
+#: from the solved means, flat below every link on an inner node: the fine Cornell box's back wall
+#: takes the lamp's light on large clusters, its top row (half as bright as the wall's middle) read
+#: as bright as the rest, and the ceiling's row along it, seeing mostly that row, +16.6 % (seed 0,
+#: tolerance 0.15; +8.7 % now). All concave-edge rows +2.53 -> +1.23 % signed, L1 0.951 -> 0.864 %
+#: (two seeds), 15 % more rays and pairs (at 0.2 1.198 -> 1.028 % with 1.44 -> 1.65 M rays; at 0.15
+#: 1.98 M rays gave 0.975 %). The pairs keep the solved means (with the planes too, the tiny-bright
+#: room's ceiling read -1.27 % for -1.00 %, four seeds at 0.1); the furnished room 1.025 -> 0.991 %
+#: at 0.3, same rays.
+NEAR_RANGE_VARIED = True
 #: Whether leaves below a fit that take the exact kernel at their own points carry no share of the
 #: fit's residual in the estimate (they interpolate nothing).
 EXACT_LEAVES_UNINTERPOLATED = True
@@ -2077,7 +2088,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     varies = children_deviation(nodes, solved.b_node, visible) / brightest
     # (the fits' sources judged from the links' planes, ``varied_radiosity``; the pairs' from the
     # solved means, whose sources are split by the pairs' own light)
-    varies_fit = children_deviation(nodes, varied_radiosity(state, solved, leaves, below), visible) / brightest \
+    varied_leaf = varied_leaf_radiosity(state, solved, leaves, below) \
+        if VARIED_SOURCES or (NEAR_SOURCE_RANGE and NEAR_RANGE_VARIED) else None
+    varies_fit = children_deviation(nodes, solved.system.pull @ varied_leaf, visible) / brightest \
         if VARIED_SOURCES else varies
     # (and how the direct light varies inside the leaves below a node, a sun's shadow on them,
     # ``own_deviation``: no gradient sends it, so it errs to first order in the kernel's change.
@@ -2086,6 +2099,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # mean to a steep underside facing the leaves' shadows on it: validation/RESULTS.md)
     # (and, for receivers near a source, the range of its leaves' radiosities, ``seen_variation``)
     b_range = radiosity_range(below, channel_max(solved.b_leaf), open_area) / brightest if NEAR_SOURCE_RANGE else None
+    # (the fits' from the links' planes, as their deviation)
+    b_range_fit = radiosity_range(below, channel_max(varied_leaf), open_area) / brightest \
+        if NEAR_SOURCE_RANGE and NEAR_RANGE_VARIED else b_range
     own_varies = (below @ (open_area * own_deviation(state, leaves))) / np.maximum(visible, 1e-300) / brightest
     fitted = gradient_sent(state, below, leaves) if LINEAR_SOURCES else np.zeros(n, bool)
     tol = state.settings.tolerance
@@ -2145,13 +2161,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # a periodic source's images may lie in front of its plane)
     curved = (below @ (nodes.curve[leaves, 6] > 0).astype(np.float64)) > 0
 
-    def uneven(ff: np.ndarray, recv: np.ndarray, src: np.ndarray, varies_of: np.ndarray, hidden=False,
+    def uneven(ff: np.ndarray, recv: np.ndarray, src: np.ndarray, of_fits: bool, hidden=False,
                dist: np.ndarray | None = None) -> np.ndarray:
         """(M,) bool: transfers recv <- src of form factor ff whose source's light, as the receiver
-        sees it (``seen_variation`` of ``varies_of``), errs by more than their share of the
-        tolerance at its mean (``uneven_source``); ``dist``: their centre distances, if known."""
+        sees it (``seen_variation``: for a fit's (``of_fits``) from the links' planes, for a pair's
+        from the solved means), errs by more than their share of the tolerance at its mean
+        (``uneven_source``); ``dist``: their centre distances, if known."""
         dist = centre_distance(nodes, recv, src) if dist is None else dist
-        return uneven_source(ff, b_src[src], seen_variation(nodes, recv, src, varies_of, b_range, dist),
+        varies_of, spread = (varies_fit, b_range_fit) if of_fits else (varies, b_range)
+        return uneven_source(ff, b_src[src], seen_variation(nodes, recv, src, varies_of, spread, dist),
                              mean_error_order(nodes, recv, src, fitted, hidden, kernel_change(nodes, recv, src, dist)),
                              h_node[recv], tol)
 
@@ -2203,7 +2221,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven((nodes.recv_w[recv] * gv).sum(axis=1), recv, src, varies_fit)
+                uneven((nodes.recv_w[recv] * gv).sum(axis=1), recv, src, True)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)
         leaf, owner = _leaf_positions_below(below, recv[ok])
@@ -2230,7 +2248,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # where the kernel weighs the source's near part, it is judged as a pair would be)
             near_ff = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
             near = leaves[leaf]
-            across |= uneven(np.maximum(near_ff, 0.0), near, src[k], varies_fit) & \
+            across |= uneven(np.maximum(near_ff, 0.0), near, src[k], True) & \
                 (nodes.children[src[k], 0] >= 0) & (nodes.kind[src[k]] != VOLUME)
         if across.any():
             pairs.append((leaves[leaf[across]], src[k[across]], rays[k[across]], origin[k[across]]))
@@ -2326,7 +2344,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2
         # h F b (``gather_allowance``)
-        varied = uneven(g_ff, pair_node, pair_src, varies, pairs[4] > 0, dist)
+        varied = uneven(g_ff, pair_node, pair_src, False, pairs[4] > 0, dist)
         volume = nodes.kind[pair_src] == VOLUME
         return (g_ff > 0) & (nodes.children[pair_src, 0] >= 0) & (overhang | varied) & ~volume
 
@@ -2701,6 +2719,12 @@ def own_deviation(state: State, leaves: np.ndarray, *, delta_only: bool = False)
 
 def varied_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp.csr_matrix) -> np.ndarray:
     """(N, C) W/m^2: every node's mean radiosity with the light of the links on inner nodes
+    pushed down as planes (``varied_leaf_radiosity``), not means."""
+    return solved.system.pull @ varied_leaf_radiosity(state, solved, leaves, below)
+
+
+def varied_leaf_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp.csr_matrix) -> np.ndarray:
+    """(L, C) W/m^2: every leaf's radiosity with the light of the links on inner nodes
     pushed down as planes, not means: each leaf's irradiance moves by the gradient of every link
     above it (``Links.grad``, times its source's radiosity) at the leaf's centroid, and its
     radiosity by its reflectance times that. The solved system pushes a link's mean to every leaf
@@ -2726,7 +2750,7 @@ def varied_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp
     moved = np.stack([np.bincount(leaf, weights=np.einsum("pk,pk->p", offset, grad[owner, :, c]),
                                   minlength=len(leaves)) for c in range(channels)], axis=1)
     rho = state.patch_rho[nodes.patch[leaves]][:, :channels]
-    return solved.system.pull @ np.maximum(solved.b_leaf + rho * moved, 0.0)
+    return np.maximum(solved.b_leaf + rho * moved, 0.0)
 
 
 def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) -> np.ndarray:
