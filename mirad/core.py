@@ -1427,7 +1427,7 @@ NOISE_PER_TRIANGLE = True
 #: each leaf's rays shared out by its fits' light, ``_check_fitted_leaves``).
 CHECKS_AFTER_DESCENT = True
 #: Whether the fitted leaves' checks start at the leaf's points in turn rather than its centroid
-#: (``transfer.leaves_blocked``'s ``points``): from the centroid a shadow over part of a leaf
+#: (``transfer.leaves_blocked``'s ``from_points``): from the centroid a shadow over part of a leaf
 #: that missed the centre was never seen (fine Cornell box at 0.15: 0.968 -> 0.951 %).
 CHECKS_FROM_POINTS = True
 
@@ -1494,8 +1494,7 @@ def _check_fitted_leaves(state: State, smooth_parts: list, checks: list, leaves:
     # leaf that missed the centre was never seen)
     blocked = leaves_blocked(state.scene.mi_scene, _buffers(state), centroid[leaf],
                              state.nodes.normal[node].astype(np.float64), node, src, state.settings.seed + 0x5AD0,
-                             state.offset, count,
-                             state.nodes.recv_pts[node].astype(np.float64) if CHECKS_FROM_POINTS else None)
+                             state.offset, count, from_points=CHECKS_FROM_POINTS)
     state.rays += int(count.sum())
     for j in np.unique(part[blocked]):
         drop = np.zeros(len(smooth_parts[j][0]), bool)

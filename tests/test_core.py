@@ -1910,7 +1910,7 @@ def test_a_leaf_under_a_sunlit_leaf_gets_the_light_of_its_shadowed_part(tmp_path
 
 
 def test_a_leafs_shadow_checks_start_at_its_points_not_its_centre(tmp_path):
-    """``transfer.leaves_blocked`` with ``points`` (``core.CHECKS_FROM_POINTS``): the shadow
+    """``transfer.leaves_blocked`` with ``from_points`` (``core.CHECKS_FROM_POINTS``): the shadow
     checks of a fitted leaf start at its points in turn. A panel hung 2 cm before a wall hides
     the ceiling lamp from the wall's strip behind it; a wall triangle whose centre lies outside
     that strip but some of whose points lie in it passes any number of checks from its centre,
@@ -1941,7 +1941,7 @@ def test_a_leafs_shadow_checks_start_at_its_points_not_its_centre(tmp_path):
     args = (scene.mi_scene, core.NodeBuffers.upload(nodes), centroid[ids], nodes.normal[wall[ids]].astype(np.float64),
             wall[ids], np.full(len(ids), lamp), 7, state.offset, 16)
     from_centre = transfer.leaves_blocked(*args)
-    from_points = transfer.leaves_blocked(*args, points=pts[ids])
+    from_points = transfer.leaves_blocked(*args, from_points=True)
     missed = np.flatnonzero(~from_centre[:len(edge)])     # (a centre's rays may cross the panel too)
     assert len(missed) >= 3 and from_points[missed].all(), (from_centre, from_points)
     assert not from_points[len(edge):].any() and not from_centre[len(edge):].any()
