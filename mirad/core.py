@@ -2982,12 +2982,16 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
     mean_light = light.mean(axis=1, keepdims=True)
     channel_share = np.where(mean_light > 0, light / np.maximum(mean_light, 1e-300), 1.0)
 
+    # (the links' and the direct light's errors and the gathered source terms, W/m^2: the same in
+    # both maps)
+    weight = output_weight(state, leaves)
+    common = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
+        (est.direct + weight * gathered.source_power) / nodes.area[leaves]
+
     def error_map(noise: np.ndarray) -> np.ndarray:
         """(L, C) W/m^2: each leaf's estimated radiosity error per channel with the gathered
         noise ``noise`` (L,) W."""
-        err = system.push @ (per_node / np.maximum(nodes.area, 1e-300)) + \
-            (est.direct + output_weight(state, leaves) * (noise + gathered.source_power)) / nodes.area[leaves]
-        err = err[:, None] * channel_share
+        err = (common + weight * noise / nodes.area[leaves])[:, None] * channel_share
         # (an irradiance error; the map is of the radiosity)
         return err * system.rho if ERRORS_OF == "irradiance" else err
 
