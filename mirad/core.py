@@ -45,8 +45,8 @@ from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, escaping_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
-from .arrays import (RAY_OFFSET, channel_max, group_sum, row_norm, row_slices, shadow_ray_length, to_bool, to_uint,
-                     to_vector3)
+from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_slices, shadow_ray_length, take_rows,
+                     to_bool, to_uint, to_vector3)
 from .visibility import hash_u32, opaque_u32, to_unit
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats
@@ -776,7 +776,7 @@ def leaf_system(state: State, leaves: np.ndarray, links: sp.csr_matrix, same: Le
     rho = state.patch_rho[nodes.patch[leaves]]
     system = LeafSystem(push, links, pull, rho, np.zeros_like(rho), tau, opposite)
     # the direct light of point, sun and sky emitters is scattered like any other
-    system.emission = sent_emission(state, leaves) + system.scatter(state.direct[leaves])
+    system.emission = sent_emission(state, leaves) + system.scatter(take_rows(state.direct, leaves))
     return system
 
 
@@ -882,7 +882,8 @@ def _point_values(state: State, recv: np.ndarray, src: np.ndarray, rays: np.ndar
                             spread)
             seconds += time.perf_counter() - t1
             state.rays += pt.rays
-            out[0][idx], out[1][idx], out[2][idx], out[3][idx] = pt.g, pt.gv, pt.gv_point, pt.gv_square
+            for a, value in zip(out, (pt.g, pt.gv, pt.gv_point, pt.gv_square)):
+                put_rows(a, idx, value)
             if found is not None:
                 found.append((idx[pt.samples[0]],) + pt.samples[1:])
     return out[0], out[1], out[2], seconds, out[3]
@@ -919,24 +920,25 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     nodes = state.nodes
     # (a pair takes its points' mean: their rays may each aim at a target of their own)
     g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays, found, SPREAD_PAIR_RAYS)
-    w = nodes.recv_w[patch].astype(np.float64)
+    w = take_rows(nodes.recv_w, patch).astype(np.float64)
     ff = (w * gv).sum(axis=1)
     ff_unocc = (w * g).sum(axis=1)
-    b = channel_max(solved.b_node[src])
+    b = channel_max(take_rows(solved.b_node, src))
     vol = nodes.kind[src] == VOLUME
     vis = noise_visibility(ff, ff_unocc, RECEIVER_POINTS * rays)
     partial = (vis > 1e-6) & (vis < 1 - 1e-6) & ~vol
     var = np.where(partial, (ff_unocc * b) ** 2 * vis * (1 - vis) / (RECEIVER_POINTS * rays), 0.0)
     if vol.any():
         # (a volume cluster's transfer is sampled whole: its rays' spread, not a fraction)
-        var[vol] = (b[vol] * volume_transfer_std(w[vol], gv[vol].astype(np.float64), square[vol].astype(np.float64),
-                                                 ff_unocc[vol], rays[vol], patch[vol], SPREAD_PAIR_RAYS)) ** 2
+        var[vol] = (b[vol] * volume_transfer_std(take_rows(w, vol), take_rows(gv, vol).astype(np.float64),
+                                                 take_rows(square, vol).astype(np.float64), ff_unocc[vol], rays[vol],
+                                                 patch[vol], SPREAD_PAIR_RAYS)) ** 2
     spatial = np.zeros(len(patch))
     # (with one ray a point the shadow's quadrature and the rays' noise are one: zero there)
     if (partial & (rays > 1)).any():
         k = np.flatnonzero(partial & (rays > 1))
-        spatial[k] = b[k] ** 2 * shadow_variance(nodes, patch[k], w[k], g[k].astype(np.float64),
-                                                 gv_point[k].astype(np.float64), rays[k])
+        spatial[k] = b[k] ** 2 * shadow_variance(nodes, patch[k], take_rows(w, k), take_rows(g, k).astype(np.float64),
+                                                 take_rows(gv_point, k).astype(np.float64), rays[k])
     # or, from a source smaller than the leaf and nearer than its size (``refine.unresolved``),
     # what the leaf's points may all miss, whichever is larger: such a source lights a spot the
     # points need not see, bounded as for the passes' links by the transfer taken from the
@@ -1013,7 +1015,7 @@ def _source_descent(state: State, solved: Solved, log: "SampleLog | None", pairs
     kept, seconds, evaluated = [], 0.0, 0
     for _ in range(rounds):
         split = split_of(pairs)
-        kept.append([a[~split] for a in pairs])
+        kept.append([take_rows(a, ~split) for a in pairs])
         if not split.any():
             pairs = [a[:0] for a in pairs]
             break
@@ -1159,7 +1161,7 @@ def _lit(pairs: list[np.ndarray]) -> list[np.ndarray]:
     splits, the gathered system, the linear sources) would only carry their zeros; in the
     room 38 % of the first pairs, in the fine Cornell box 60 %."""
     keep = (pairs[3] > 0) | (pairs[4] > 0) | (pairs[5] > 0)
-    return pairs if keep.all() else [a[keep] for a in pairs]
+    return pairs if keep.all() else [take_rows(a, keep) for a in pairs]
 
 
 def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray, gv_point: np.ndarray,
@@ -1201,14 +1203,14 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     deviation (M,) with K - 3 degrees of freedom, in the values' units."""
     ids, inverse = np.unique(recv, return_inverse=True)
     k_count = nodes.recv_pts.shape[1]
-    w = nodes.recv_w[ids].astype(np.float64) if weighted else np.full((len(ids), k_count), 1.0 / k_count)
+    w = take_rows(nodes.recv_w, ids).astype(np.float64) if weighted else np.full((len(ids), k_count), 1.0 / k_count)
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     frame = _PlaneFrame.of(nodes, ids, w)
     t1, t2, size = frame.t1, frame.t2, frame.size
     # in-plane coordinates (u, v) along a tangent frame: the design [1 u v] has full rank,
     # and its 3 x 3 normal equations are solved in one batch (the 4-column design in space
     # needed a pseudo-inverse, an SVD per receiver)
-    design = frame.design(nodes.recv_pts[ids].astype(np.float64), quadratic=False)            # (U, K, 3)
+    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=False)            # (U, K, 3)
     # (weights scaled to mean 1: the equal-weight fit is the plain least squares)
     scaled = design * (k_count * w)[..., None]
     gram = np.einsum("mkp,mkq->mpq", design, scaled)
@@ -1218,12 +1220,12 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     fit[regular] = np.matmul(adjugate[regular] / det[regular, None, None], np.swapaxes(scaled[regular], 1, 2))
     if not regular.all():
         fit[~regular] = np.linalg.pinv(design[~regular])                  # (points on a line)
-    coef = np.einsum("mpk,mk->mp", fit[inverse], values)
-    resid = values - np.einsum("mkp,mp->mk", design[inverse], coef)
-    resid = resid * np.sqrt(k_count * w[inverse])
+    coef = np.einsum("mpk,mk->mp", take_rows(fit, inverse), values)
+    resid = values - np.einsum("mkp,mp->mk", take_rows(design, inverse), coef)
+    resid = resid * np.sqrt(k_count * take_rows(w, inverse))
     dof = max(values.shape[1] - 3, 1)
-    grad = (coef[:, 1:2] * t1[inverse] + coef[:, 2:3] * t2[inverse]) / size[inverse, None]
-    return frame.x0[inverse], coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
+    grad = (coef[:, 1:2] * take_rows(t1, inverse) + coef[:, 2:3] * take_rows(t2, inverse)) / size[inverse, None]
+    return take_rows(frame.x0, inverse), coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
 
 
 def _symmetric_adjugate(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1258,8 +1260,8 @@ class _PlaneFrame:
     @classmethod
     def of(cls, nodes: Nodes, ids: np.ndarray, w: np.ndarray) -> "_PlaneFrame":
         """The frame of nodes ids (U,) at the mean of their receiver points weighted by w (U, K)."""
-        x0 = np.einsum("mk,mkc->mc", w, nodes.recv_pts[ids].astype(np.float64))
-        t1, t2 = tangents(nodes.normal[ids])
+        x0 = np.einsum("mk,mkc->mc", w, take_rows(nodes.recv_pts, ids).astype(np.float64))
+        t1, t2 = tangents(take_rows(nodes.normal, ids))
         size = nodes.radius[ids]
         return cls(x0, t1, t2, np.where(size > 0, size, 1.0))
 
@@ -1294,22 +1296,22 @@ def curved_field(nodes: Nodes, recv: np.ndarray, values: np.ndarray, plane_at_po
     straightens out towards the rim (a wall's light towards the corner it makes with the
     receiver) it overshot (a corner triangle 2.8 -> 4.7 % high)."""
     ids, inverse = np.unique(recv, return_inverse=True)
-    w = nodes.recv_w[ids].astype(np.float64)
+    w = take_rows(nodes.recv_w, ids).astype(np.float64)
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     frame = _PlaneFrame.of(nodes, ids, w)
-    design = frame.design(nodes.recv_pts[ids].astype(np.float64), quadratic=True)             # (U, K, 6)
+    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=True)             # (U, K, 6)
     scaled = design * (design.shape[1] * w)[..., None]
     gram = np.einsum("mkp,mkq->mpq", design, scaled)
     # (a relative bound on the smallest eigenvalue, in the dimensionless coordinates)
     regular = np.linalg.eigvalsh(gram)[:, 0] > CURVED_CONDITION * np.einsum("mpp->m", gram)
     fit = np.zeros((len(ids), 6, design.shape[1]))
     fit[regular] = np.linalg.solve(gram[regular], np.swapaxes(scaled[regular], 1, 2))
-    coef = np.einsum("mjk,mk->mj", fit[inverse], values)                      # (M, 6)
+    coef = np.einsum("mjk,mk->mj", take_rows(fit, inverse), values)                      # (M, 6)
     row = inverse[owner]
-    d = at - frame.x0[row]
-    u = np.einsum("pc,pc->p", d, frame.t1[row]) / frame.size[row]
-    v = np.einsum("pc,pc->p", d, frame.t2[row]) / frame.size[row]
-    c = coef[owner]                                                           # [1 u v u^2 uv v^2]
+    d = at - take_rows(frame.x0, row)
+    u = np.einsum("pc,pc->p", d, take_rows(frame.t1, row)) / frame.size[row]
+    v = np.einsum("pc,pc->p", d, take_rows(frame.t2, row)) / frame.size[row]
+    c = take_rows(coef, owner)                                                           # [1 u v u^2 uv v^2]
     quad = c[:, 0] + u * (c[:, 1] + c[:, 3] * u + c[:, 4] * v) + v * (c[:, 2] + c[:, 5] * v)
     # (the curvature's correction stays within the plane's largest miss at the points)
     miss = np.abs(values - plane_at_points).max(axis=1)[owner]
@@ -1336,7 +1338,7 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     rays below this level but the leaves' checks (``check_rays``).
     Returns (smooth (M,) bool, x0, a, grad, rms) of the fits (``linear_fit``)."""
     x0, a, grad, rms = linear_fit(nodes, recv, gv.astype(np.float64), weighted=True)
-    mean = (nodes.recv_w[recv] * gv).sum(axis=1)
+    mean = (take_rows(nodes.recv_w, recv) * gv).sum(axis=1)
     # every point sees the whole source (in front of it, no ray blocked): a field cut by a
     # shadow or by the receiver's horizon is not linear, and points that all missed a
     # source say nothing about the patches between them
@@ -1500,7 +1502,7 @@ def _check_fitted_leaves(state: State, smooth_parts: list, checks: list, leaves:
     for j in np.unique(part[blocked]):
         drop = np.zeros(len(smooth_parts[j][0]), bool)
         drop[place[blocked & (part == j)]] = True
-        smooth_parts[j] = tuple(a[~drop] for a in smooth_parts[j])
+        smooth_parts[j] = tuple(take_rows(a, ~drop) for a in smooth_parts[j])
     return node[blocked], src[blocked], rays[blocked], link[blocked]
 
 
@@ -1520,15 +1522,16 @@ def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centr
     nodes = state.nodes
     ids, first, inverse = np.unique(recv, return_index=True, return_inverse=True)
     u_leaf, u_owner = _leaf_positions_below(below, ids)
-    x0 = x0[first]
-    normal = nodes.normal[ids][u_owner].astype(np.float64)
+    x0 = take_rows(x0, first)
+    normal = take_rows(take_rows(nodes.normal, ids), u_owner).astype(np.float64)
     # (the segment runs above the receiver's own triangles: lifted by how far their corners
     # leave its plane, a nearly coplanar cluster's bumps do not cross it)
-    corners = nodes.poly[leaves[u_leaf], :3].astype(np.float64) - x0[u_owner][:, None]
+    corners = take_rows(nodes.poly, leaves[u_leaf])[:, :3].astype(np.float64) - take_rows(x0, u_owner)[:, None]
     height = np.zeros(len(ids))
     np.maximum.at(height, u_owner, np.abs(np.einsum("pkc,pc->pk", corners, normal)).max(axis=1))
     lift = normal * height[u_owner][:, None]
-    hit = blocked(state.scene.mi_scene, x0[u_owner] + lift, centroid[u_leaf] + lift, normal, state.offset)
+    hit = blocked(state.scene.mi_scene, take_rows(x0, u_owner) + lift, take_rows(centroid, u_leaf) + lift, normal,
+                  state.offset)
     # each of recv's rows repeats its node's block of leaves, in the same order
     node_start = np.searchsorted(u_owner, np.arange(len(ids)))
     row_start = np.searchsorted(owner, np.arange(len(recv)))
@@ -1735,20 +1738,20 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     below = to_leaves.T.tocsr()[sources]                      # (S, L') 0/1 rows
     own_s, own_l = below.nonzero()
     leaf_nodes = leaves[own_l]
-    pts = nodes.recv_pts[leaf_nodes].astype(np.float64)       # (P, K, 3)
+    pts = take_rows(nodes.recv_pts, leaf_nodes).astype(np.float64)       # (P, K, 3)
     # (a leaf's radiosity is its whole area's mean, its buried part dark: over its visible
     # part it is that over the visible share, and a leaf wholly buried says nothing)
     seen = 1.0 - state.buried[leaf_nodes]
     # (each source's leaves, in their order: a 0/1 map whose products sum over them)
     to_source = sp.csr_matrix((np.ones(len(own_s)), (own_s, np.arange(len(own_s)))), shape=(len(sources), len(own_s)))
-    wts = nodes.recv_w[leaf_nodes].astype(np.float64) * (nodes.area[leaf_nodes] * (seen > 1e-9))[:, None]
+    wts = take_rows(nodes.recv_w, leaf_nodes).astype(np.float64) * (nodes.area[leaf_nodes] * (seen > 1e-9))[:, None]
     normal = nodes.normal[sources]
     t1, t2 = tangents(normal)
     origin = poly.mean(axis=1)
     # (in units of the source's radius: the fit is the same for the same geometry in any units)
     size = np.maximum(nodes.radius[sources], 1e-300)
-    d = (pts - origin[own_s][:, None]) / size[own_s][:, None, None]
-    u, v = np.einsum("pkc,pc->pk", d, t1[own_s]), np.einsum("pkc,pc->pk", d, t2[own_s])
+    d = (pts - take_rows(origin, own_s)[:, None]) / size[own_s][:, None, None]
+    u, v = np.einsum("pkc,pc->pk", d, take_rows(t1, own_s)), np.einsum("pkc,pc->pk", d, take_rows(t2, own_s))
     design = np.stack([np.ones_like(u), u, v], axis=2)        # (P, K, 3)
     weighted_design = wts[:, :, None] * design                 # (P, K, 3)
     design_t = np.ascontiguousarray(weighted_design.transpose(0, 2, 1))     # (P, 3, K)
@@ -1796,7 +1799,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
     inv_seen = 1.0 / np.maximum(seen, 1e-9)
-    rho_fit = rho[fit_pos]                                     # (P, C)
+    rho_fit = take_rows(rho, fit_pos)                                     # (P, C)
     own_pairs = _row_maps(own_row)
     fixed_light = None
     if fixed is not None:
@@ -1816,12 +1819,14 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         mean = np.einsum("fk,fkc->fc", fit_w_leaf, hl)
         # the fit's right-hand sides: the leaf's mean plus its reflectance times the spread
         # of that light over its points (its value at each point), weighted by the design
-        spread = np.matmul(design_t, hl[fit_row]) - design_sum[:, :, None] * mean[fit_row][:, None, :]
-        per = design_sum[:, :, None] * (b_leaf[fit_pos] * inv_seen[:, None])[:, None, :] + \
+        spread = np.matmul(design_t, take_rows(hl, fit_row)) - \
+            design_sum[:, :, None] * take_rows(mean, fit_row)[:, None, :]
+        per = design_sum[:, :, None] * (take_rows(b_leaf, fit_pos) * inv_seen[:, None])[:, None, :] + \
             rho_fit[:, None, :] * spread                                        # (P, 3, C)
         rhs = (to_source @ per.reshape(len(own_s), 3 * channels)).reshape(len(sources), 3, channels)
         coef = np.einsum("sij,sjc->sic", inverse, rhs)      # [B at origin, dB/du, dB/dv] per channel
-        dh = mu[:, :1] * coef[s_pos, 1] + mu[:, 1:] * coef[s_pos, 2]
+        coef_s = take_rows(coef, s_pos)
+        dh = mu[:, :1] * coef_s[:, 1] + mu[:, 1:] * coef_s[:, 2]
         # over every direction a gradient moves light without adding any; what its corrections
         # add over the transfers beyond what the light that leaves the scene can take (its first
         # moment there at most the gradient times one radius times that light's share) is the
@@ -1832,7 +1837,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
         share = np.divide(excess, reach[:, None], out=np.zeros_like(excess), where=reach[:, None] > 0)
         # (on the receiver node: a leaf, or a face cluster whose leaves all take it; sums over
         # the transfers, not 0/1 matrices over them: 12 bytes a transfer each)
-        return to_leaves @ group_sum(r, dh - bal_ff[:, None] * share[s_pos], n)
+        return to_leaves @ group_sum(r, dh - bal_ff[:, None] * take_rows(share, s_pos), n)
 
     return extra
 
@@ -1856,14 +1861,13 @@ def _add_point_light(out: np.ndarray, maps: list, items: np.ndarray, src: np.nda
     """Add to ``out`` (F, K, C) the light transfers bring to their rows' K points: each of
     ``items`` (M,) (in ``_row_maps`` order, ``maps``) its ``points`` (K,) transfer times its
     source's radiosity, ``src`` (its source) and ``points`` indexed by the items, ``b_node``
-    (N, C). A map at a time: their (M'', K) float64 products (of float32 transfers, as
+    (N, C). A map at a time: their (M'', K, C) float64 products (of float32 transfers, as
     gathered) are not made at once."""
     for part, rows, starts in maps:
         idx = items[part]
-        b_src = b_node[src[idx]]
-        values = points[idx]
-        for c in range(out.shape[2]):
-            out[rows, :, c] += np.add.reduceat(values * b_src[:, c:c + 1], starts, axis=0)
+        b_src = take_rows(b_node, src[idx])
+        values = take_rows(points, idx)
+        out[rows] += np.add.reduceat(values[:, :, None] * b_src[:, None, :], starts, axis=0)
 
 
 def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.ndarray, tri: np.ndarray,
@@ -1934,7 +1938,7 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     centre = (part_centre - part_centre.mean(axis=1, keepdims=True)) / size[:, None, None]   # (S, J, 3)
     # (each part's offset in its source's plane frame, per source: (S, J, 2))
     offset = np.stack([np.einsum("sjc,sc->sj", centre, frame[i]) for i in range(2)], axis=2)
-    w = nodes.recv_w[recv].astype(np.float64)
+    w = take_rows(nodes.recv_w, recv).astype(np.float64)
     seen = np.einsum("mk,mkj->mj", w, f)                      # (M, J) each part's transfer, as seen
     visible = seen.sum(axis=1)
     scale = np.divide(ff, visible, out=np.zeros(len(recv)), where=visible > 0)
@@ -1991,16 +1995,17 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
     while len(now[0]):
         recv, src = now[:2]
         split = (overhangs(nodes, recv, src) | near_volume(nodes, recv, src)) & (nodes.children[src, 0] >= 0)
-        done.append(tuple(a[~split] for a in now))
+        done.append(tuple(take_rows(a, ~split) for a in now))
         own, child = nodes.children_of(src[split])
-        now = (recv[split][own], child, *(a[split][own] for a in now[2:]))
+        now = (recv[split][own], child, *(take_rows(take_rows(a, split), own) for a in now[2:]))
     return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
 
 
 def sphere_height(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(M,) m: the signed height of the top of node a's bounding sphere over the plane of b
     (its normal through its polygon's first corner): <= 0 where all of a lies behind it."""
-    return np.einsum("mc,mc->m", nodes.normal[b], nodes.center[a] - nodes.poly[b, 0]) + nodes.radius[a]
+    corner = take_rows(nodes.poly[:, 0], b)
+    return np.einsum("mc,mc->m", take_rows(nodes.normal, b), take_rows(nodes.center, a) - corner) + nodes.radius[a]
 
 
 def behind_source(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -2218,7 +2223,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven((nodes.recv_w[recv] * gv).sum(axis=1), recv, src, True)
+                uneven((take_rows(nodes.recv_w, recv) * gv).sum(axis=1), recv, src, True)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)
         leaf, owner = _leaf_positions_below(below, recv[ok])
@@ -2243,7 +2248,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         if UNEVEN_FIT_LEAVES:
             # (and a leaf that takes much more of the source than the fit's mean: near the source,
             # where the kernel weighs the source's near part, it is judged as a pair would be)
-            near_ff = a[k] + np.einsum("mc,mc->m", grad[k], centroid[leaf] - x0[k])
+            near_ff = a[k] + np.einsum("mc,mc->m", take_rows(grad, k), take_rows(centroid, leaf) - take_rows(x0, k))
             near = leaves[leaf]
             across |= uneven(np.maximum(near_ff, 0.0), near, src[k], True) & \
                 (nodes.children[src[k], 0] >= 0) & (nodes.kind[src[k]] != VOLUME)
@@ -2265,7 +2270,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         by_field = np.flatnonzero(~exact_leaf)
         if len(by_field):
             kf, lf = k[by_field], leaf[by_field]
-            field = a[kf] + np.einsum("mc,mc->m", grad[kf], centroid[lf] - x0[kf])
+            field = a[kf] + np.einsum("mc,mc->m", take_rows(grad, kf), take_rows(centroid, lf) - take_rows(x0, kf))
             if CURVED_FITS:
                 plane = a[ok][:, None] + np.einsum("mc,mkc->mk", grad[ok], nodes.recv_pts[recv[ok]] - x0[ok][:, None])
                 field = curved_field(nodes, recv[ok], gv[ok].astype(np.float64), plane, owner[by_field],
@@ -2273,21 +2278,23 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             value[by_field] = field * open_share[by_field]
             # (and the fit's plane at the leaf's own points: its spread over them is part of the
             # leaf's light that the sources' gradients read, ``linear_sources``)
-            spread = np.einsum("mc,mkc->mk", grad[kf], nodes.recv_pts[leaves[lf]] - centroid[lf][:, None])
+            spread = np.einsum("mc,mkc->mk", take_rows(grad, kf),
+                               take_rows(nodes.recv_pts, leaves[lf]) - take_rows(centroid, lf)[:, None])
             at_points[by_field] = value[by_field][:, None] + spread * open_share[by_field][:, None]
         seen = np.flatnonzero(exact_leaf)
         if len(seen):
             exact = reverse_form_factor(_buffers(state), src[k[seen]], leaves[leaf[seen]], state.offset)
             exact *= open_share[seen][:, None]
             at_points[seen] = exact
-            value[seen] = np.einsum("mk,mk->m", nodes.recv_w[leaves[leaf[seen]]], exact)
+            value[seen] = np.einsum("mk,mk->m", take_rows(nodes.recv_w, leaves[leaf[seen]]), exact)
         # the fit's residual is the interpolation's error, counted like visibility noise
         residual = (rms[k] * b_src[src[k]]) ** 2
         if EXACT_LEAVES_UNINTERPOLATED:
             residual = np.where(exact_leaf, 0.0, residual)
         smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), residual, fit_id[owner],
                              np.maximum(at_points, 0.0).astype(np.float32)))
-        smooth_links_at.append((recv[ok], src[ok], (nodes.recv_w[recv[ok]] * gv[ok]).sum(axis=1), fit_id))
+        smooth_links_at.append((recv[ok], src[ok], (take_rows(nodes.recv_w, recv[ok]) * take_rows(gv, ok)).sum(axis=1),
+                                fit_id))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth & ~source_split)
         tried = np.flatnonzero(whole)
@@ -2398,7 +2405,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
                 if away.any():
                     moved_node.append(leaves[part[0][away]])
                     moved_src.append(part[1][away])
-                    smooth_parts[j] = tuple(a[~away] for a in part)
+                    smooth_parts[j] = tuple(take_rows(a, ~away) for a in part)
             # (the links gathered again as pairs are among the pairs: moved too, they counted twice)
             from_links = np.flatnonzero(np.isin(links.recv, crossed) & ~link_moved & ~on_leaf)
             link_moved[from_links] = True
@@ -2408,7 +2415,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         rest = on_split & ~over
         stay.append((pair_node[rest], pair_src[rest], g_ff[rest], g_var[rest] + g_shadow[rest], pair_rays[rest],
                      pair_row[rest]))
-        kept.append([a[~on_split] for a in pairs_now])
+        kept.append([take_rows(a, ~on_split) for a in pairs_now])
         parent_node = np.concatenate([pair_node[over]] + moved_node)
         own, k_node = nodes.children_of(parent_node)
         # (a child's noise weighs by its share of the input triangle, a quarter of its parent's:
@@ -2624,7 +2631,7 @@ def source_state(state: State, solved: Solved) -> SourceState:
     senders = np.unique(links.src).astype(np.int64)
     pull = system.pull[senders]             # CSR (S, L): a row per sender, its leaves' shares
     rows = np.repeat(np.arange(len(senders)), np.diff(pull.indptr))
-    deviation = channel_max(np.abs(b_leaf[pull.indices] - b_node[senders[rows]]))
+    deviation = channel_max(np.abs(take_rows(b_leaf, pull.indices) - take_rows(b_node, senders[rows])))
     measured = np.zeros(n)
     measured[senders] = np.bincount(rows, weights=pull.data * deviation, minlength=len(senders))
     if OWN_SOURCE_DEVIATION and state.scene.light_emitters:
@@ -2677,8 +2684,9 @@ def gradient_sent(state: State, below: sp.csr_matrix, leaves: np.ndarray) -> np.
     rows = np.repeat(np.arange(n), np.diff(below.indptr))
     leaf = leaves[below.indices]
     flat = np.ones(n, bool)
-    np.logical_and.at(flat, rows,
-                      np.einsum("mc,mc->m", nodes.normal[leaf], nodes.normal[rows]) >= 1.0 - PLANE_NORMAL_TOL)
+    in_plane = np.einsum("mc,mc->m", take_rows(nodes.normal, leaf), take_rows(nodes.normal, rows)) >= \
+        1.0 - PLANE_NORMAL_TOL
+    np.logical_and.at(flat, rows, in_plane)
     seen = np.bincount(rows, weights=nodes.area[leaf] * (1.0 - state.buried[leaf]), minlength=n) > 0
     return flat & seen & np.isin(nodes.kind, (TRIANGLE, FACE))
 
@@ -2745,7 +2753,7 @@ def varied_leaf_radiosity(state: State, solved: Solved, leaves: np.ndarray, belo
     leaf, owner = _leaf_positions_below(below, receivers)
     # (each leaf's offset from each receiver's points, not the two positions apart: a scene far
     # from the origin would lose the offsets' digits)
-    offset = nodes.poly[leaves[leaf], :3].astype(np.float64).mean(axis=1) - x0[owner]
+    offset = take_rows(nodes.poly, leaves[leaf])[:, :3].astype(np.float64).mean(axis=1) - take_rows(x0, owner)
     moved = np.stack([np.bincount(leaf, weights=np.einsum("pk,pk->p", offset, grad[owner, :, c]),
                                   minlength=len(leaves)) for c in range(channels)], axis=1)
     rho = state.patch_rho[nodes.patch[leaves]][:, :channels]
@@ -2765,7 +2773,7 @@ def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) ->
     has = kids >= 0
     safe = np.where(has, kids, 0)
     w = np.where(has, visible[safe], 0.0)
-    d = np.abs(b_node[safe] - b_node[:, None, :]).max(axis=2)
+    d = np.abs(np.take(b_node, safe, axis=0) - b_node[:, None, :]).max(axis=2)
     total = w.sum(axis=1)
     return np.where(total > 0, (w * d).sum(axis=1) / np.maximum(total, 1e-300), 0.0)
 

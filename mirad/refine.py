@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .arrays import row_norm, row_slices
+from .arrays import row_norm, row_slices, take_rows
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
 from .transfer import PointTransfers, pattern_size, ray_target
@@ -143,7 +143,7 @@ class Links:
 
 def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransfers, rays: np.ndarray) -> Links:
     """Links from the per-point results of a wave (see module docstring)."""
-    w = nodes.recv_w[recv].astype(np.float64)
+    w = take_rows(nodes.recv_w, recv).astype(np.float64)
     g = pt.g.astype(np.float64)
     gv = pt.gv.astype(np.float64)
     ff = (w * gv).sum(axis=1)
@@ -185,8 +185,9 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     vis_std = np.where(partial, ff_unocc * np.sqrt(np.clip(seen * (1 - seen), 0, 0.25) / n_rays), 0.0)
     vol = nodes.kind[src] == VOLUME
     if vol.any():
-        vis_std[vol] = volume_transfer_std(w[vol], gv[vol], pt.gv_square[vol].astype(np.float64), ff_unocc[vol],
-                                           rays[vol], recv[vol])
+        vis_std[vol] = volume_transfer_std(take_rows(w, vol), take_rows(gv, vol),
+                                           take_rows(pt.gv_square, vol).astype(np.float64), ff_unocc[vol], rays[vol],
+                                           recv[vol])
         if VOLUME_NOISE_OF_FACE_MEANS:
             # (the points' stratified estimate alone, inside a cluster's sphere, read a third of
             # the seeds' spread where the samples' own error read it)
@@ -290,8 +291,8 @@ def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
 
     The distance runs from the source's bounding sphere to the receiver's disc (its bounding
     sphere's section in its plane): the height over the plane and the reach beyond the rim."""
-    rel = nodes.center[src] - nodes.center[recv]
-    height = np.abs(np.einsum("mc,mc->m", rel, nodes.normal[recv]))
+    rel = take_rows(nodes.center, src) - take_rows(nodes.center, recv)
+    height = np.abs(np.einsum("mc,mc->m", rel, take_rows(nodes.normal, recv)))
     across = np.sqrt(np.maximum(np.einsum("mc,mc->m", rel, rel) - height ** 2, 0.0))
     beyond = np.maximum(across - nodes.radius[recv], 0.0)
     gap = np.maximum(np.hypot(height, beyond) - nodes.radius[src], 0.0)
@@ -322,7 +323,8 @@ def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.nda
     unoccluded transfer integrated over the source's side, A_s / A_r sum_k w_k F(y_k -> r)
     (``reverse`` (M, K): transfer.reverse_form_factor), times the links' visibility: where
     the receiver's points miss a near source's spot, the two disagree."""
-    other = nodes.area[src] / np.maximum(nodes.area[recv], 1e-300) * (nodes.recv_w[src] * reverse).sum(axis=1)
+    other = nodes.area[src] / np.maximum(nodes.area[recv], 1e-300) * \
+        (take_rows(nodes.recv_w, src) * reverse).sum(axis=1)
     ff_unocc = np.asarray(ff_unocc, np.float64)
     vis = visible_fraction(ff, ff_unocc)
     return np.abs(ff_unocc - other) * vis
@@ -385,7 +387,7 @@ def centre_distance(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(M,) m: from the centre of each node a to that of b (M,)."""
     out = np.empty(len(a))
     for part in row_slices(len(a), DISTANCE_CHUNK):
-        out[part] = row_norm(nodes.center[a[part]] - nodes.center[b[part]])
+        out[part] = row_norm(take_rows(nodes.center, a[part]) - take_rows(nodes.center, b[part]))
     return out
 
 
@@ -411,10 +413,12 @@ def _straddles(nodes: Nodes, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     A face cluster lies inside its form-factor rectangle (nodes.Nodes.poly), so the signed
     heights of the rectangle's corners over b's plane bound those of its patches; touching
     the plane (a floor against a wall) is not straddling it."""
-    h = np.einsum("mc,mkc->mk", nodes.normal[b], nodes.poly[a] - nodes.poly[b, 0][:, None])
+    h = np.einsum("mc,mkc->mk", take_rows(nodes.normal, b),
+                  take_rows(nodes.poly, a) - take_rows(nodes.poly[:, 0], b)[:, None])
     tol = 1e-6 * np.maximum(nodes.radius[a], 1e-300)
     return (nodes.kind[a] == FACE) & (h.min(axis=1) < -tol) & (h.max(axis=1) > tol) & \
-        (nodes.kind[b] != VOLUME) & (np.abs(np.einsum("mc,mc->m", nodes.normal[a], nodes.normal[b])) < 1 - 1e-6)
+        (nodes.kind[b] != VOLUME) & \
+        (np.abs(np.einsum("mc,mc->m", take_rows(nodes.normal, a), take_rows(nodes.normal, b))) < 1 - 1e-6)
 
 
 @dataclass

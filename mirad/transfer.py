@@ -183,8 +183,10 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
                 found.append(_arriving(*out[5:], k, rays_per_point, a))
     arrived = join_samples(found) if samples else None
     if order is not None:
-        for per_point in (g, gv, gp, g2):
-            per_point[order] = per_point.copy()
+        # (each row back to its pair's place: row i of the wave is pair order[i])
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+        g, gv, gp, g2 = (np.take(per_point, back, axis=0) for per_point in (g, gv, gp, g2))
         if samples:
             arrived = (order[arrived[0]],) + arrived[1:]
     return PointTransfers(g, gv, gp, g2, rays, arrived)

@@ -6,6 +6,9 @@ followed by an unmapped page then faults inside JIT-compiled code (SIGSEGV). The
 place an array's last element right before a page made unreadable with ``mprotect`` and run an
 elementwise kernel on it: through mirad's converters, which copy into a padded buffer, they
 finish with the right sums; the control hands the same memory to Dr.Jit directly.
+
+And the row copies of the gather's (M, K) and (M, 3) arrays (``take_rows``, ``put_rows``): fancy
+indexing's results, bit for bit.
 """
 
 from __future__ import annotations
@@ -14,7 +17,11 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
+from hypothesis import given, settings as hyp_settings, strategies as st
+
+from mirad.arrays import put_rows, take_rows
 
 # (count of elements: not a multiple of any SIMD width, so that the last packet is partial)
 GUARDED = textwrap.dedent("""
@@ -127,3 +134,34 @@ def test_mirad_hands_numpy_to_drjit_only_through_its_converters():
             if any(raw(a) for a in node.args):
                 found.append(f"{path.name}:{node.lineno}: {ast.get_source_segment(source, node)}")
     assert not found, "\n".join(found)
+
+
+# --- the row copies (take_rows, put_rows): fancy indexing's result, faster ------------------
+
+_ROWS = hyp_settings(max_examples=60, deadline=None, derandomize=True)
+
+
+@_ROWS
+@given(st.integers(1, 40), st.sampled_from([(), (3,), (7,), (4, 3), (2, 7, 3)]), st.integers(0, 2**16),
+       st.sampled_from(["int", "negative", "mask", "run"]))
+def test_take_rows_and_put_rows_are_fancy_indexing(n, trailing, seed, kind):
+    """``take_rows(a, i)`` is ``a[i]`` and ``put_rows(a, i, v)`` is ``a[i] = v``, bit for bit,
+    for any shape, index array (ints, negative ints, a bool mask, a run of rows) and dtype."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((n,) + trailing).astype(rng.choice([np.float32, np.float64]))
+    if kind == "mask":
+        index = rng.random(n) < 0.5
+    elif kind == "run":
+        start = int(rng.integers(0, n))
+        index = np.arange(start, int(rng.integers(start, n + 1)))
+    else:
+        index = rng.integers(-n if kind == "negative" else 0, n, size=int(rng.integers(0, 2 * n)))
+    got = take_rows(a, index)
+    assert got.dtype == a.dtype and np.array_equal(got, a[index])
+    if kind != "mask":
+        index = np.unique(index % n) if len(index) else index    # (rows written once each)
+        values = rng.standard_normal((len(index),) + trailing).astype(a.dtype)
+        expected, out = a.copy(), a.copy()
+        expected[index] = values
+        put_rows(out, index, values)
+        assert np.array_equal(out, expected)
