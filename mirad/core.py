@@ -1861,13 +1861,20 @@ def _add_point_light(out: np.ndarray, maps: list, items: np.ndarray, src: np.nda
     """Add to ``out`` (F, K, C) the light transfers bring to their rows' K points: each of
     ``items`` (M,) (in ``_row_maps`` order, ``maps``) its ``points`` (K,) transfer times its
     source's radiosity, ``src`` (its source) and ``points`` indexed by the items, ``b_node``
-    (N, C). A map at a time: their (M'', K, C) float64 products (of float32 transfers, as
+    (N, C). A map at a time: their (M'', K) float64 products (of float32 transfers, as
     gathered) are not made at once."""
     for part, rows, starts in maps:
         idx = items[part]
         b_src = take_rows(b_node, src[idx])
         values = take_rows(points, idx)
-        out[rows] += np.add.reduceat(values[:, :, None] * b_src[:, None, :], starts, axis=0)
+        # (a 0/1 matrix (rows, items) made from the starts as it is used: a sparse product sums
+        # the rows 20 times sooner than np.add.reduceat along the first axis)
+        to_row = sp.csr_matrix((np.ones(len(idx)), np.arange(len(idx)), np.append(starts, len(idx))),
+                               shape=(len(rows), len(idx)))
+        light = np.empty((len(rows),) + out.shape[1:])
+        for c in range(out.shape[2]):
+            light[:, :, c] = to_row @ (values * b_src[:, c:c + 1])
+        out[rows] += light
 
 
 def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.ndarray, tri: np.ndarray,
