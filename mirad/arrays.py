@@ -117,7 +117,8 @@ def put_rows(out: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
     """``out[index] = values`` for row indices ``index`` (M,) along the first axis: as a
     slice where they are one run of rows (a wave's pairs, often all of them), whose copy is one
     block rather than fancy indexing's row by row."""
-    if len(index) and index[-1] - index[0] + 1 == len(index) and (len(index) == 1 or (np.diff(index) == 1).all()):
+    run = len(index) and index[0] >= 0 and index[-1] - index[0] + 1 == len(index)
+    if run and (len(index) == 1 or (np.diff(index) == 1).all()):
         out[index[0]:index[0] + len(index)] = values
     else:
         out[index] = values
