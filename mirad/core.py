@@ -2544,10 +2544,15 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     # and an inner node's mean, pulled from its leaves, is theirs. A leaf's gathered mean
     # counts its buried points as unlit; it lands on its visible part, as in ``solve``
     keep = np.flatnonzero(~inner[links.recv] & ~link_moved & ~on_leaf)
-    transfers = sp.csr_matrix((np.concatenate([links.ff[keep].astype(np.float64), ff]),
-                               (np.concatenate([links.recv[keep], recv]), np.concatenate([links.src[keep], srcs]))),
-                              shape=(n, n))
+    # (its entries as 32-bit indices, the pieces let go first: at the gather's peak, tens of
+    # millions of entries were held four times over, as pieces, as their concatenation, as the
+    # 32-bit copies the sparse constructor makes and as the matrix)
+    entries = (np.concatenate([links.ff[keep].astype(np.float64), ff]),
+               (np.concatenate([links.recv[keep].astype(np.int32), recv.astype(np.int32)]),
+                np.concatenate([links.src[keep].astype(np.int32), srcs.astype(np.int32)])))
     del recv, srcs, ff, hidden, src_error, sampled, change
+    transfers = sp.csr_matrix(entries, shape=(n, n))
+    del entries
     same = len(final_leaves) == n_leaf
     final = leaf_system(state, final_leaves, transfers, solved.system if same else None)
     start = solved.b_node.copy()
