@@ -101,6 +101,9 @@ class State:
     patch_tri: np.ndarray          # (P,) the input triangle of every patch (``Scene.patch_tri``, built once)
     patch_rho: np.ndarray          # (P, C) reflectance of every patch
     patch_emission: np.ndarray     # (P, C) emitted radiosity, W/m^2
+    patch_tau: np.ndarray | None   # (P, C) transmittance of translucent leaves (Scene.patch_transmittance), or
+    #                                None where nothing transmits (taken once: the scene computes it at each use)
+    patch_opposite: np.ndarray | None  # (P,) the patch on each patch's other side (-1: none), with patch_tau
     total_area: float              # m^2, all patches
     counted: np.ndarray            # (P,) bool: patches of the shapes the tolerance is over (Settings.error_shapes)
     counted_area: float            # m^2, their area: the estimate is relative to their light
@@ -176,9 +179,12 @@ def build(scene: Scene, settings: Settings) -> State:
     total = float(nodes.area[: len(surf.verts)].sum())
     counted = counted_patches(scene, settings)
     tol = settings.tolerance
+    transmits = scene.diffuse_transmission
     state = State(scene=scene, settings=settings, channels=channels, surface=surf, nodes=nodes, root=root,
                   patch_tri=scene.patch_tri, patch_rho=scene.patch_rho[:, :channels],
                   patch_emission=scene.patch_emission[:, :channels],
+                  patch_tau=scene.patch_transmittance[:, :channels] if transmits else None,
+                  patch_opposite=scene.patch_opposite if transmits else None,
                   total_area=total, counted=counted,
                   counted_area=total if counted.all() else float(nodes.area[: len(surf.verts)][counted].sum()),
                   order=order,
@@ -727,12 +733,12 @@ def transmission(state: State, leaves: np.ndarray) -> tuple[np.ndarray | None, s
     leaf l of patch q gets tau_{q'} times the mean irradiance of the opposite patch q' (the
     area-weighted mean over q''s leaves; the two sides may be refined differently, so the
     transfer is per triangle, which keeps per-triangle powers exact)."""
-    scene, nodes = state.scene, state.nodes
-    if not scene.diffuse_transmission:
+    nodes = state.nodes
+    if state.patch_tau is None:
         return None, None
     patch = nodes.patch[leaves]
-    opposite_patch = scene.patch_opposite[patch]
-    tau_all = scene.patch_transmittance[:, : state.channels]
+    opposite_patch = state.patch_opposite[patch]
+    tau_all = state.patch_tau
     has = opposite_patch >= 0
     tau = np.where(has[:, None], tau_all[np.maximum(opposite_patch, 0)], 0.0)
     # (P, L): area-weighted mean over each patch's leaves, then row l picks its opposite patch
