@@ -1216,7 +1216,7 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     # in-plane coordinates (u, v) along a tangent frame: the design [1 u v] has full rank,
     # and its 3 x 3 normal equations are solved in one batch (the 4-column design in space
     # needed a pseudo-inverse, an SVD per receiver)
-    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=False)            # (U, K, 3)
+    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=False)     # (U, K, 3)
     # (weights scaled to mean 1: the equal-weight fit is the plain least squares)
     scaled = design * (k_count * w)[..., None]
     gram = np.einsum("mkp,mkq->mpq", design, scaled)
@@ -1305,19 +1305,19 @@ def curved_field(nodes: Nodes, recv: np.ndarray, values: np.ndarray, plane_at_po
     w = take_rows(nodes.recv_w, ids).astype(np.float64)
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     frame = _PlaneFrame.of(nodes, ids, w)
-    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=True)             # (U, K, 6)
+    design = frame.design(take_rows(nodes.recv_pts, ids).astype(np.float64), quadratic=True)      # (U, K, 6)
     scaled = design * (design.shape[1] * w)[..., None]
     gram = np.einsum("mkp,mkq->mpq", design, scaled)
     # (a relative bound on the smallest eigenvalue, in the dimensionless coordinates)
     regular = np.linalg.eigvalsh(gram)[:, 0] > CURVED_CONDITION * np.einsum("mpp->m", gram)
     fit = np.zeros((len(ids), 6, design.shape[1]))
     fit[regular] = np.linalg.solve(gram[regular], np.swapaxes(scaled[regular], 1, 2))
-    coef = np.einsum("mjk,mk->mj", take_rows(fit, inverse), values)                      # (M, 6)
+    coef = np.einsum("mjk,mk->mj", take_rows(fit, inverse), values)           # (M, 6)
     row = inverse[owner]
     d = at - take_rows(frame.x0, row)
     u = np.einsum("pc,pc->p", d, take_rows(frame.t1, row)) / frame.size[row]
     v = np.einsum("pc,pc->p", d, take_rows(frame.t2, row)) / frame.size[row]
-    c = take_rows(coef, owner)                                                           # [1 u v u^2 uv v^2]
+    c = take_rows(coef, owner)                                                # [1 u v u^2 uv v^2]
     quad = c[:, 0] + u * (c[:, 1] + c[:, 3] * u + c[:, 4] * v) + v * (c[:, 2] + c[:, 5] * v)
     # (the curvature's correction stays within the plane's largest miss at the points)
     miss = np.abs(values - plane_at_points).max(axis=1)[owner]
@@ -1529,7 +1529,7 @@ def crossed_leaves(state: State, below: sp.csr_matrix, leaves: np.ndarray, centr
     ids, first, inverse = np.unique(recv, return_index=True, return_inverse=True)
     u_leaf, u_owner = _leaf_positions_below(below, ids)
     x0 = take_rows(x0, first)
-    normal = take_rows(take_rows(nodes.normal, ids), u_owner).astype(np.float64)
+    normal = take_rows(nodes.normal, ids[u_owner]).astype(np.float64)
     # (the segment runs above the receiver's own triangles: lifted by how far their corners
     # leave its plane, a nearly coplanar cluster's bumps do not cross it)
     corners = take_rows(nodes.poly, leaves[u_leaf])[:, :3].astype(np.float64) - take_rows(x0, u_owner)[:, None]
@@ -1744,7 +1744,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     below = to_leaves.T.tocsr()[sources]                      # (S, L') 0/1 rows
     own_s, own_l = below.nonzero()
     leaf_nodes = leaves[own_l]
-    pts = take_rows(nodes.recv_pts, leaf_nodes).astype(np.float64)       # (P, K, 3)
+    pts = take_rows(nodes.recv_pts, leaf_nodes).astype(np.float64)    # (P, K, 3)
     # (a leaf's radiosity is its whole area's mean, its buried part dark: over its visible
     # part it is that over the visible share, and a leaf wholly buried says nothing)
     seen = 1.0 - state.buried[leaf_nodes]
@@ -1805,7 +1805,7 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
     inv_seen = 1.0 / np.maximum(seen, 1e-9)
-    rho_fit = take_rows(rho, fit_pos)                                     # (P, C)
+    rho_fit = take_rows(rho, fit_pos)                          # (P, C)
     own_pairs = _row_maps(own_row)
     fixed_light = None
     if fixed is not None:
@@ -1852,8 +1852,8 @@ def _row_maps(rows: np.ndarray) -> list[tuple[slice, np.ndarray, np.ndarray]]:
     """Items with sorted ``rows`` (M,) summed into their rows a map at a time: (items, the rows
     they fill (R',), where each row's items start in the map (R',)). About GATHER_CHUNK items a
     map, each map holding whole rows, so that every row's sum runs over its items in one order
-    however they are chunked. (Per row, not per item: 0/1 matrices over the items held 12 bytes
-    an item, a tenth of the furnished room's gather at tolerance 0.02.)"""
+    however they are chunked. (Per row, not per item: the 0/1 matrices over the items that the
+    maps once held between solves took 12 bytes an item.)"""
     cuts = np.unique(np.searchsorted(rows, rows[np.arange(0, len(rows), GATHER_CHUNK)]))
     maps = []
     for a, b in zip(cuts, np.append(cuts[1:], len(rows))):
@@ -2010,7 +2010,8 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
         split = (overhangs(nodes, recv, src) | near_volume(nodes, recv, src)) & (nodes.children[src, 0] >= 0)
         done.append(tuple(take_rows(a, ~split) for a in now))
         own, child = nodes.children_of(src[split])
-        now = (recv[split][own], child, *(take_rows(take_rows(a, split), own) for a in now[2:]))
+        picked = np.flatnonzero(split)[own]
+        now = (recv[picked], child, *(take_rows(a, picked) for a in now[2:]))
     return tuple(np.concatenate([d[i] for d in done]) for i in range(len(now)))
 
 
