@@ -1375,7 +1375,7 @@ def unfittable(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
 #: facing it at its mean, 0.274, where the part it sees sends 0.222: +23 %.)
 SPLIT_UNEVEN_FIT_SOURCES = True
 #: Whether the fits' sources (``SPLIT_UNEVEN_FIT_SOURCES``) are judged by how far their light varies
-#: as read from the radiosity with the links' planes pushed down (``varied_radiosity``), not from the
+#: as read from the radiosity with the links' planes pushed down (``varied_leaf_radiosity``), not from the
 #: solved means, which are flat below every link on an inner node. Fine Cornell box, L1 per seed over
 #: three seeds, with the fits' source splits: 0.2 2.10 -> 1.57 %, 0.15 1.42 -> 1.10 %, 0.1 0.85 ->
 #: 0.69 %, for about 15 % more rays (the splits alone: 1.30 % at 0.15). The gathered pairs' sources keep
@@ -1793,14 +1793,13 @@ def linear_sources(state: State, system: LeafSystem, leaves: np.ndarray, to_leav
     pull = system.pull
     # each source's transfers as power per unit radiosity, sum_r A_r F_rs = A_s sum_r F_sr: the
     # share of its light that lands on them
-    bal_ff = item_ff[planar]
-    reach = np.bincount(s_pos, weights=nodes.area[r] * bal_ff, minlength=len(sources))
+    bal_ff, moved_area = item_ff[planar], nodes.area[r]
+    reach = np.bincount(s_pos, weights=moved_area * bal_ff, minlength=len(sources))
     # (and of its light the share that leaves the scene)
     escaping, traced = escaping_share(state.scene.mi_scene, _buffers(state), sources, state.settings.seed + 0xE5CA,
                                       state.offset)
     state.rays += traced
     elsewhere = escaping * nodes.area[sources]
-    moved_area = nodes.area[r]
 
     # (the fit and the transfers as arrays and sparse maps, set once: ``extra`` runs per solve)
     fit_w_leaf = nodes.recv_w[fit_leaves].astype(np.float64)   # (F, K)
@@ -2102,7 +2101,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     visible = below @ open_area
     brightest = np.maximum(channel_max(solved.b_node), 1e-300)
     varies = children_deviation(nodes, solved.b_node, visible) / brightest
-    # (the fits' sources judged from the links' planes, ``varied_radiosity``; the pairs' from the
+    # (the fits' sources judged from the links' planes, ``varied_leaf_radiosity``; the pairs' from the
     # solved means, whose sources are split by the pairs' own light)
     varied_leaf = varied_leaf_radiosity(state, solved, leaves, below) \
         if VARIED_SOURCES or (NEAR_SOURCE_RANGE and NEAR_RANGE_VARIED) else None
@@ -2741,12 +2740,6 @@ def own_deviation(state: State, leaves: np.ndarray, *, delta_only: bool = False)
     spread = state.direct_delta_spread if delta_only else state.direct_spread
     return state.patch_rho[state.nodes.patch[leaves]].max(axis=1) * EXPECTED_ABS * \
         channel_max(spread[leaves]) * np.sqrt(np.maximum(state.direct_samples[leaves], 1))
-
-
-def varied_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp.csr_matrix) -> np.ndarray:
-    """(N, C) W/m^2: every node's mean radiosity with the light of the links on inner nodes
-    pushed down as planes (``varied_leaf_radiosity``), not means."""
-    return solved.system.pull @ varied_leaf_radiosity(state, solved, leaves, below)
 
 
 def varied_leaf_radiosity(state: State, solved: Solved, leaves: np.ndarray, below: sp.csr_matrix) -> np.ndarray:

@@ -65,7 +65,7 @@ def test_the_links_planes_show_how_a_box_face_lit_at_its_own_level_varies():
     """After one pass over the fine Cornell box the boxes' faces take their light through links
     on their face clusters, and the solved system pushes each link's mean to every leaf below:
     the faces' children read the same radiosity, and nothing says their light varies. Pushed
-    as the links' planes (``core.varied_radiosity``), the leaves follow the final gather's own
+    as the links' planes (``core.varied_leaf_radiosity``), the leaves follow the final gather's own
     field (correlation over 0.9), and the faces' children's deviation is within a factor of two of
     the gathered solution's, where the solved means' is nil."""
     scene = mirad.load_scene(SCENES / "cornell-box-fine" / "scene.xml")
@@ -76,7 +76,8 @@ def test_the_links_planes_show_how_a_box_face_lit_at_its_own_level_varies():
     core.refine(state, empty, np.finfo(float).max, 10 ** 7)
     solved = core.solve(state, None)
     n, leaves = len(nodes), solved.leaves
-    varied = core.varied_radiosity(state, solved, leaves, core.ancestor_matrix(nodes, leaves).T.tocsr())
+    varied = solved.system.pull @ core.varied_leaf_radiosity(state, solved, leaves,
+                                                             core.ancestor_matrix(nodes, leaves).T.tocsr())
     gathered = core.final_gather(state, solved)
     system = gathered.system
     b_gathered = (system.pull @ (system.emission + system.scatter(gathered.irradiance)))[:n]
