@@ -169,3 +169,16 @@ def channel_max(a: np.ndarray) -> np.ndarray:
     and is about five times slower on (N, 3) arrays, once per refinement pass."""
     a = np.asarray(a)
     return np.maximum.reduce([a[:, c] for c in range(a.shape[1])]) if a.shape[1] > 1 else a[:, 0].copy()
+
+
+def row_sum(a: np.ndarray) -> np.ndarray:
+    """(M,) sum of each row of a float (M, K) array with few columns (a receiver's K points, a
+    node's children), added column by column from the left.
+
+    ``a.sum(axis=1)`` walks each short row on its own, two to six times slower; for K < 8 it adds
+    a row's values in the same order from zero, so the sums are its bits."""
+    a = np.asarray(a)
+    out = a[:, 0] + 0.0 if a.shape[1] else np.zeros(len(a), a.dtype)
+    for k in range(1, a.shape[1]):
+        out += a[:, k]
+    return out

@@ -45,7 +45,7 @@ from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, escaping_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
-from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_slices, shadow_ray_length, take_rows,
+from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_sum, row_slices, shadow_ray_length, take_rows,
                      to_bool, to_uint, to_vector3)
 from .visibility import hash_u32, opaque_u32, to_unit
 from .cluster import sphere_form_factor_bound
@@ -149,8 +149,8 @@ def _surface(scene: Scene, channels: int, seed: int) -> Surface:
     normal = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-300)
     curve = (scene.curve_center[tris], scene.curve_axis[tris], scene.curve_radius[tris])
     return Surface(verts=verts, normal=normal, group_key=scene.tri_shape[tris].astype(np.int64) * 2 + side,
-                   rho_max=scene.patch_rho[:, :channels].max(axis=1),
-                   emits=scene.patch_emission[:, :channels].max(axis=1) > 0, curve=curve,
+                   rho_max=channel_max(scene.patch_rho[:, :channels]),
+                   emits=channel_max(scene.patch_emission[:, :channels]) > 0, curve=curve,
                    diagonal=scene.diagonal, seed=int(seed))
 
 
@@ -927,8 +927,8 @@ def _evaluate_chunk(state: State, solved: Solved, patch: np.ndarray, src: np.nda
     # (a pair takes its points' mean: their rays may each aim at a target of their own)
     g, gv, gv_point, seconds, square = _point_values(state, patch, src, rays, found, SPREAD_PAIR_RAYS)
     w = take_rows(nodes.recv_w, patch).astype(np.float64)
-    ff = (w * gv).sum(axis=1)
-    ff_unocc = (w * g).sum(axis=1)
+    ff = row_sum(w * gv)
+    ff_unocc = row_sum(w * g)
     b = channel_max(take_rows(solved.b_node, src))
     vol = nodes.kind[src] == VOLUME
     vis = noise_visibility(ff, ff_unocc, RECEIVER_POINTS * rays)
@@ -1183,12 +1183,12 @@ def shadow_variance(nodes: Nodes, recv: np.ndarray, w: np.ndarray, g: np.ndarray
     while an edge between the points leaves a residual. Its variance, less the share the
     rays' noise explains (g_k^2 v_k (1 - v_k) / (R - 1)) with SHADOW_NOISE_MARGIN, over K points
     as for K samples. Zero with one ray per point (residual and noise are one there)."""
-    ff_unocc = (w * g).sum(axis=1)
+    ff_unocc = row_sum(w * g)
     v = np.where(g > 0, gv_point / np.where(g > 0, g, 1.0), 1.0)
-    vis = (w * g * v).sum(axis=1) / np.where(ff_unocc > 0, ff_unocc, 1.0)
+    vis = row_sum(w * g * v) / np.where(ff_unocc > 0, ff_unocc, 1.0)
     _, _, _, rms = linear_fit(nodes, recv, g * (v - vis[:, None]))
     r = rays.astype(np.float64)[:, None]
-    noise = SHADOW_NOISE_MARGIN * (w * g * g * v * (1 - v) / np.maximum(r - 1, 1)).sum(axis=1)
+    noise = SHADOW_NOISE_MARGIN * row_sum(w * g * g * v * (1 - v) / np.maximum(r - 1, 1))
     return np.where(rays > 1, np.maximum(rms * rms - noise, 0.0) / RECEIVER_POINTS, 0.0)
 
 
@@ -1231,7 +1231,7 @@ def linear_fit(nodes: Nodes, recv: np.ndarray, values: np.ndarray, *, weighted: 
     resid = resid * np.sqrt(k_count * take_rows(w, inverse))
     dof = max(values.shape[1] - 3, 1)
     grad = (coef[:, 1:2] * take_rows(t1, inverse) + coef[:, 2:3] * take_rows(t2, inverse)) / size[inverse, None]
-    return take_rows(frame.x0, inverse), coef[:, 0], grad, np.sqrt((resid * resid).sum(axis=1) / dof)
+    return take_rows(frame.x0, inverse), coef[:, 0], grad, np.sqrt(row_sum(resid * resid) / dof)
 
 
 def _symmetric_adjugate(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1320,7 +1320,7 @@ def curved_field(nodes: Nodes, recv: np.ndarray, values: np.ndarray, plane_at_po
     c = take_rows(coef, owner)                                                # [1 u v u^2 uv v^2]
     quad = c[:, 0] + u * (c[:, 1] + c[:, 3] * u + c[:, 4] * v) + v * (c[:, 2] + c[:, 5] * v)
     # (the curvature's correction stays within the plane's largest miss at the points)
-    miss = np.abs(values - plane_at_points).max(axis=1)[owner]
+    miss = channel_max(np.abs(values - plane_at_points))[owner]
     quad = linear + np.clip(quad - linear, -miss, miss)
     good = regular[row]
     shift = np.bincount(owner, weights=area * (linear - quad) * good, minlength=len(recv)) / \
@@ -1344,7 +1344,7 @@ def smooth_links(nodes: Nodes, recv: np.ndarray, src: np.ndarray, g: np.ndarray,
     rays below this level but the leaves' checks (``check_rays``).
     Returns (smooth (M,) bool, x0, a, grad, rms) of the fits (``linear_fit``)."""
     x0, a, grad, rms = linear_fit(nodes, recv, gv.astype(np.float64), weighted=True)
-    mean = (take_rows(nodes.recv_w, recv) * gv).sum(axis=1)
+    mean = row_sum(take_rows(nodes.recv_w, recv) * gv)
     # every point sees the whole source (in front of it, no ray blocked): a field cut by a
     # shadow or by the receiver's horizon is not linear, and points that all missed a
     # source say nothing about the patches between them
@@ -1952,7 +1952,7 @@ def _part_moments(state: State, recv: np.ndarray, s_pos: np.ndarray, parts: np.n
     offset = np.stack([np.einsum("sjc,sc->sj", centre, frame[i]) for i in range(2)], axis=2)
     w = take_rows(nodes.recv_w, recv).astype(np.float64)
     seen = np.einsum("mk,mkj->mj", w, f)                      # (M, J) each part's transfer, as seen
-    visible = seen.sum(axis=1)
+    visible = row_sum(seen)
     scale = np.divide(ff, visible, out=np.zeros(len(recv)), where=visible > 0)
     # (the J parts' centroids hold 1 - 1/J of the source's area covariance, each part the rest
     # over J: J / (J - 1) restores the moment of a kernel linear across each part)
@@ -2236,7 +2236,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             # varies across it more than the fit's share of the tolerance allows, as the pairs'
             # sources are judged, the link descends on the source side instead)
             source_split = smooth & (nodes.children[src, 0] >= 0) & (nodes.kind[src] != VOLUME) & \
-                uneven((take_rows(nodes.recv_w, recv) * gv).sum(axis=1), recv, src, True)
+                uneven(row_sum(take_rows(nodes.recv_w, recv) * gv), recv, src, True)
             smooth &= ~source_split
         ok = np.flatnonzero(smooth)
         leaf, owner = _leaf_positions_below(below, recv[ok])
@@ -2306,7 +2306,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             residual = np.where(exact_leaf, 0.0, residual)
         smooth_parts.append((leaf, src[k], np.maximum(value, 0.0), residual, fit_id[owner],
                              np.maximum(at_points, 0.0).astype(np.float32)))
-        smooth_links_at.append((recv[ok], src[ok], (take_rows(nodes.recv_w, recv[ok]) * take_rows(gv, ok)).sum(axis=1),
+        smooth_links_at.append((recv[ok], src[ok], row_sum(take_rows(nodes.recv_w, recv[ok]) * take_rows(gv, ok)),
                                 fit_id))
         # the others go one level down the receiver's tree
         rest = np.flatnonzero(~smooth & ~source_split)
@@ -2410,8 +2410,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         moved_node, moved_src = [], []
         if len(crossed):
             on_crossed = np.flatnonzero(np.isin(pair_node, crossed))
-            spread = (nodes.recv_w[pair_node[on_crossed]] *
-                      np.abs(g_pts[on_crossed] - g_ff[on_crossed, None].astype(np.float32))).sum(axis=1)
+            spread = row_sum(nodes.recv_w[pair_node[on_crossed]] *
+                             np.abs(g_pts[on_crossed] - g_ff[on_crossed, None].astype(np.float32)))
             over[on_crossed[(b_src[pair_src[on_crossed]] * spread) ** 2 * share[on_crossed] > allowed[on_crossed]]] = True
             for j, part in enumerate(smooth_parts):
                 away = np.isin(leaves[part[0]], crossed)
@@ -2658,8 +2658,8 @@ def source_state(state: State, solved: Solved) -> SourceState:
     if SOURCE_DEVIATION == "measured":
         dev = measured
     else:
-        variation = np.bincount(links.recv, weights=links.spread * b_node.max(axis=1)[links.src], minlength=n)
-        leaf_rho = state.patch_rho[state.nodes.patch[solved.leaves]].max(axis=1)
+        variation = np.bincount(links.recv, weights=links.spread * channel_max(b_node)[links.src], minlength=n)
+        leaf_rho = channel_max(state.patch_rho[state.nodes.patch[solved.leaves]])
         dev = measured.copy()
         dev[senders] = np.maximum(measured[senders], pull @ (leaf_rho * (system.push @ variation)))
     # the brightest leaf below each sender and each volume cluster (a segmented maximum over the
@@ -2738,7 +2738,7 @@ def own_deviation(state: State, leaves: np.ndarray, *, delta_only: bool = False)
     if not state.scene.light_emitters:
         return np.zeros(len(leaves))
     spread = state.direct_delta_spread if delta_only else state.direct_spread
-    return state.patch_rho[state.nodes.patch[leaves]].max(axis=1) * EXPECTED_ABS * \
+    return channel_max(state.patch_rho[state.nodes.patch[leaves]]) * EXPECTED_ABS * \
         channel_max(spread[leaves]) * np.sqrt(np.maximum(state.direct_samples[leaves], 1))
 
 
@@ -2761,7 +2761,7 @@ def varied_leaf_radiosity(state: State, solved: Solved, leaves: np.ndarray, belo
                                for c in range(channels)], axis=1) for k in range(3)], axis=1)
     w = nodes.recv_w[receivers].astype(np.float64)
     x0 = np.einsum("rk,rkc->rc", w, nodes.recv_pts[receivers].astype(np.float64)) / \
-        np.maximum(w.sum(axis=1), 1e-300)[:, None]
+        np.maximum(row_sum(w), 1e-300)[:, None]
     leaf, owner = _leaf_positions_below(below, receivers)
     # (each leaf's offset from each receiver's points, not the two positions apart: a scene far
     # from the origin would lose the offsets' digits)
@@ -2785,9 +2785,10 @@ def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) ->
     has = kids >= 0
     safe = np.where(has, kids, 0)
     w = np.where(has, visible[safe], 0.0)
-    d = np.abs(np.take(b_node, safe, axis=0) - b_node[:, None, :]).max(axis=2)
-    total = w.sum(axis=1)
-    return np.where(total > 0, (w * d).sum(axis=1) / np.maximum(total, 1e-300), 0.0)
+    diff = np.abs(np.take(b_node, safe, axis=0) - b_node[:, None, :])
+    d = np.maximum.reduce([diff[:, :, c] for c in range(diff.shape[2])]) if diff.shape[2] > 1 else diff[:, :, 0]
+    total = row_sum(w)
+    return np.where(total > 0, row_sum(w * d) / np.maximum(total, 1e-300), 0.0)
 
 
 def amplification(state: State, solved: Solved) -> float:

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .arrays import row_norm, row_slices, take_rows
+from .arrays import row_norm, row_slices, row_sum, take_rows
 from .cluster import sphere_form_factor_bound
 from .nodes import DUNAVANT7_BARY, FACE, RECEIVER_POINTS, TRIANGLE, VOLUME, Nodes
 from .transfer import PointTransfers, pattern_size, ray_target
@@ -146,8 +146,8 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     w = take_rows(nodes.recv_w, recv).astype(np.float64)
     g = pt.g.astype(np.float64)
     gv = pt.gv.astype(np.float64)
-    ff = (w * gv).sum(axis=1)
-    ff_unocc = (w * g).sum(axis=1)
+    ff = row_sum(w * gv)
+    ff_unocc = row_sum(w * g)
     vis = visible_fraction(ff, ff_unocc)
     face_recv = nodes.kind[recv] == FACE
     # triangles: the 7-point degree-5 rule against the degree-2 rule on its six outer points
@@ -159,10 +159,10 @@ def link_values(nodes: Nodes, recv: np.ndarray, src: np.ndarray, pt: PointTransf
     d = distance_to_source(nodes, recv, src)
     h = nodes.radius[recv]
     order_gain = np.minimum(1.0, (h / np.maximum(d, 1e-12 * np.maximum(h, 1e-300))) ** 3)
-    low = (g * EMBEDDED_WEIGHTS[None]).sum(axis=1)
+    low = row_sum(g * EMBEDDED_WEIGHTS[None])
     quad = np.abs(ff_unocc - low) * order_gain * vis
     dev = pt.gv_point.astype(np.float64) - ff[:, None]
-    spread = (w * np.abs(dev)).sum(axis=1)
+    spread = row_sum(w * np.abs(dev))
     # a face cluster's mean from its K area-stratified points: their standard error (the
     # variation of the light over the cluster is not an error: the final gather resolves it
     # on the input triangles; only the cluster's mean enters the solution)
@@ -324,7 +324,7 @@ def reciprocal_error(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff: np.nda
     (``reverse`` (M, K): transfer.reverse_form_factor), times the links' visibility: where
     the receiver's points miss a near source's spot, the two disagree."""
     other = nodes.area[src] / np.maximum(nodes.area[recv], 1e-300) * \
-        (take_rows(nodes.recv_w, src) * reverse).sum(axis=1)
+        row_sum(take_rows(nodes.recv_w, src) * reverse)
     ff_unocc = np.asarray(ff_unocc, np.float64)
     vis = visible_fraction(ff, ff_unocc)
     return np.abs(ff_unocc - other) * vis
@@ -344,10 +344,10 @@ def volume_transfer_std(w: np.ndarray, mean: np.ndarray, square: np.ndarray, uno
     ray count stands for the one that might have turned over. ``recv`` (M,): the receiver
     nodes w is of, where known (``shared_target_weight`` then goes once per receiver). With
     ``spread`` (``transfer.ray_target``) every ray has its own target: sum_i w_i^2 / R."""
-    f = (w * mean).sum(axis=1)
-    pooled = np.maximum((w * square).sum(axis=1) - f * f, 0.0)
+    f = row_sum(w * mean)
+    pooled = np.maximum(row_sum(w * square) - f * f, 0.0)
     n = RECEIVER_POINTS * rays.astype(np.float64)
-    weight = (w * w).sum(axis=1) / rays if spread else shared_target_weight(w, rays, recv)
+    weight = row_sum(w * w) / rays if spread else shared_target_weight(w, rays, recv)
     std = np.sqrt(pooled * weight)
     return np.maximum(std, unoccluded / n)
 

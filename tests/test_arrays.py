@@ -8,7 +8,8 @@ elementwise kernel on it: through mirad's converters, which copy into a padded b
 finish with the right sums; the control hands the same memory to Dr.Jit directly.
 
 And the row copies of the gather's (M, K) and (M, 3) arrays (``take_rows``, ``put_rows``): fancy
-indexing's results, bit for bit.
+indexing's results, bit for bit; the sums and maxima over a row's few columns (``row_sum``,
+``channel_max``): numpy's reductions, bit for bit.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hyp_settings, strategies as st
 
-from mirad.arrays import put_rows, take_rows
+from mirad.arrays import channel_max, put_rows, row_sum, take_rows
 
 # (count of elements: not a multiple of any SIMD width, so that the last packet is partial)
 GUARDED = textwrap.dedent("""
@@ -165,3 +166,20 @@ def test_take_rows_and_put_rows_are_fancy_indexing(n, trailing, seed, kind):
         expected[index] = values
         put_rows(out, index, values)
         assert np.array_equal(out, expected)
+
+
+@_ROWS
+@given(st.integers(0, 40), st.integers(1, 7), st.integers(0, 2**16), st.booleans())
+def test_row_sum_and_channel_max_are_numpys_reductions(n, k, seed, zeros):
+    """``row_sum(a)`` is ``a.sum(axis=1)`` and ``channel_max(a)`` is ``a.max(axis=1)``, bit for bit
+    (signed zeros too), for float32 and float64 rows of up to 7 values: the receivers' points."""
+    rng = np.random.default_rng(seed)
+    a = (rng.standard_normal((n, k)) * 10.0 ** rng.integers(-15, 15, (n, k))).astype(rng.choice([np.float32,
+                                                                                                   np.float64]))
+    if zeros:
+        a[rng.random((n, k)) < 0.3] = -0.0
+    got, expected = row_sum(a), a.sum(axis=1)
+    assert got.dtype == expected.dtype and np.array_equal(got, expected)
+    assert np.array_equal(np.signbit(got), np.signbit(expected))
+    if n:
+        assert np.array_equal(channel_max(a), a.max(axis=1))
