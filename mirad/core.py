@@ -1364,7 +1364,9 @@ def unfittable(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     that only bounds its cluster, nearer than its size (its overhang is not light); and a
     source too near for the receiver's points (``refine.unresolved``: it may light a spot
     between them). Geometry alone: the gather sends them down without evaluating them."""
-    near_overhang = (nodes.fill[src] < 1.0 - 1e-6) & (distance_to_source(nodes, recv, src) <= 2.0 * nodes.radius[src])
+    near_overhang = nodes.fill[src] < 1.0 - 1e-6
+    some = np.flatnonzero(near_overhang)         # (the distances of the rectangles only)
+    near_overhang[some] = distance_to_source(nodes, recv[some], src[some]) <= 2.0 * nodes.radius[src[some]]
     return near_overhang | (nodes.kind[src] == VOLUME) | unresolved(nodes, recv, src)
 
 

@@ -291,12 +291,18 @@ def unresolved(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
 
     The distance runs from the source's bounding sphere to the receiver's disc (its bounding
     sphere's section in its plane): the height over the plane and the reach beyond the rim."""
+    out = (nodes.kind[recv] != VOLUME) & (nodes.radius[src] < nodes.radius[recv])
+    # (the distances only where the cheap tests leave a link: a gathered pair's receiver, a
+    # leaf, is rarely the larger end)
+    some = np.flatnonzero(out)
+    recv, src = recv[some], src[some]
     rel = take_rows(nodes.center, src) - take_rows(nodes.center, recv)
     height = np.abs(np.einsum("mc,mc->m", rel, take_rows(nodes.normal, recv)))
     across = np.sqrt(np.maximum(np.einsum("mc,mc->m", rel, rel) - height ** 2, 0.0))
     beyond = np.maximum(across - nodes.radius[recv], 0.0)
     gap = np.maximum(np.hypot(height, beyond) - nodes.radius[src], 0.0)
-    return (nodes.kind[recv] != VOLUME) & (nodes.radius[src] < nodes.radius[recv]) & (gap < nodes.radius[recv])
+    out[some] = gap < nodes.radius[recv]
+    return out
 
 
 def unseen_in_front(nodes: Nodes, recv: np.ndarray, src: np.ndarray, ff_unocc: np.ndarray) -> np.ndarray:
