@@ -137,6 +137,33 @@ def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_no
     assert "frozen function" not in capfd.readouterr().err
 
 
+def test_recorded_buried_shares_are_the_traced_ones(monkeypatch):
+    """The buried shares of a refinement pass's new leaves replay recorded launches
+    (``transfer._record_buried``): the traced launches' shares, bitwise, for launches of any
+    number of nodes, and on a second copy of the scene, whose shapes have other registry ids."""
+    from mirad import transfer
+    record = transfer._record_buried
+    scenes = [mirad.load_scene(SCENES / "cornell-box" / "scene.xml") for _ in range(2)]
+    partial = 0
+    for scene in scenes:
+        state = core.build(scene, make_settings(tolerance=0.1, **HIER))
+        nodes, buf = state.nodes, transfer.NodeBuffers.upload(state.nodes)
+        tri = np.flatnonzero(nodes.kind == core.TRIANGLE)
+        for m in (2, 7, len(tri)):
+            ids = tri[:m]
+            shares = []
+            for recorded in (False, True):
+                monkeypatch.setattr(transfer, "_record_buried", record if recorded else (lambda *_: False))
+                shares.append((transfer.buried_fraction(scene.mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids],
+                                                        state.offset),
+                               transfer.buried_share(scene.mi_scene, buf, ids, 64, 3, state.offset)))
+            for traced, replayed in zip(*shares):
+                np.testing.assert_array_equal(replayed, traced)
+            partial += int(np.count_nonzero((shares[1][1] > 0) & (shares[1][1] < 1)))
+    # (the floor's triangles under the boxes: partly buried, so the shares can differ)
+    assert partial > 0
+
+
 def test_a_wave_recorded_for_some_links_replays_exactly_for_others(monkeypatch):
     """One recording of a wave serves any number of links: waves of 1, 2, 9 and 40 links, in
     that order (three rays a point: a kind of call no other test records), give the per-point
