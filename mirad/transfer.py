@@ -222,16 +222,24 @@ def reverse_form_factor(buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, off
     m, k = len(recv), RECEIVER_POINTS
     if m == 0:
         return np.zeros((0, k))
-    lane = dr.arange(mi.UInt32, m * k)
-    r = dr.gather(mi.UInt32, to_uint(recv), lane // k)
-    s = dr.gather(mi.UInt32, to_uint(src), lane // k)
+    # (recorded and replayed as the waves are, but for a single link, whose width-1 inputs a
+    # recording may take for scalars)
+    values = _frozen_reverse if FREEZE_WAVES and m > 1 else _reverse_values
+    value = values(buf.arrays(), to_uint(recv), to_uint(src), dr.arange(mi.UInt32, m * k), offset)
+    dr.eval(value)
+    return np.asarray(value.numpy(), np.float64).reshape(m, k)
+
+
+def _reverse_values(buf: NodeArrays, recv, src, lane, offset: float):
+    """``reverse_form_factor``'s values (mi.Float, M K) of links recv <- src (mi.UInt32 (M,)),
+    ``lane`` an arange over their M K points."""
+    k = RECEIVER_POINTS
+    r = dr.gather(mi.UInt32, recv, lane // k)
+    s = dr.gather(mi.UInt32, src, lane // k)
     y = dr.gather(mi.Vector3f, buf.recv_pts, s * k + lane % k)
     ny = dr.gather(mi.Vector3f, buf.recv_nrm, s * k + lane % k)
     corners = [dr.gather(mi.Vector3f, c, r) for c in buf.poly]
-    value = _point_form_factor(buf, y, ny, corners, dr.gather(mi.Vector3f, buf.normal, r),
-                               dr.full(mi.Bool, True, m * k), r, offset)
-    dr.eval(value)
-    return np.asarray(value.numpy(), np.float64).reshape(m, k)
+    return _point_form_factor(buf, y, ny, corners, dr.gather(mi.Vector3f, buf.normal, r), True, r, offset)
 
 
 def _point_form_factor(buf: NodeArrays, x, nx, corners, ns, planar, s, offset: float):
@@ -459,16 +467,18 @@ def _freeze(function):
 
 _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
 _frozen_buried = _freeze(lambda *args: _buried_counts(*args))
+_frozen_reverse = _freeze(lambda *args: _reverse_values(*args))
 _frozen_buried_share = _freeze(lambda *args: _buried_share_counts(*args))
 _frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
                                                                                 samples))
 
 
 def wave_recordings() -> int:
-    """How many times this process recorded a frozen wave's halves or a buried-share launch
-    (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved before with the same
+    """How many times this process recorded a frozen wave's halves, a buried-share launch or a
+    reverse form factor's (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved before with the same
     settings adds none."""
-    return sum(f.n_recordings for f in (_frozen_aim, _frozen_sums, _frozen_buried, _frozen_buried_share))
+    return sum(f.n_recordings for f in (_frozen_aim, _frozen_sums, _frozen_buried, _frozen_buried_share,
+                                       _frozen_reverse))
 
 
 def _sums(r_count: int, point_lane, lanes: Lanes, volume_norm, *also) -> tuple:
