@@ -45,8 +45,8 @@ from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, escaping_share, evaluate, leaves_blocked,
                        point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
-from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_sum, row_slices, shadow_ray_length, take_rows,
-                     to_bool, to_uint, to_vector3)
+from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_slices, row_sum, shadow_ray_length,
+                     take_rows, to_bool, to_uint, to_vector3)
 from .visibility import hash_u32, opaque_u32, to_unit
 from .cluster import sphere_form_factor_bound
 from .far_field import far_field, periodic_stats

@@ -466,17 +466,19 @@ def _freeze(function):
 
 
 _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
-_frozen_buried = _freeze(lambda *args: _buried_counts(*args))
-_frozen_reverse = _freeze(lambda *args: _reverse_values(*args))
-_frozen_buried_share = _freeze(lambda *args: _buried_share_counts(*args))
 _frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
                                                                                 samples))
+# (and the launches a refinement pass makes beside its waves: the buried shares of its new
+# leaves and the reverse form factors of its near links)
+_frozen_buried = _freeze(lambda *args: _buried_counts(*args))
+_frozen_buried_share = _freeze(lambda *args: _buried_share_counts(*args))
+_frozen_reverse = _freeze(lambda *args: _reverse_values(*args))
 
 
 def wave_recordings() -> int:
     """How many times this process recorded a frozen wave's halves, a buried-share launch or a
-    reverse form factor's (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved before with the same
-    settings adds none."""
+    reverse form factor's (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved
+    before with the same settings adds none."""
     return sum(f.n_recordings for f in (_frozen_aim, _frozen_sums, _frozen_buried, _frozen_buried_share,
                                        _frozen_reverse))
 
@@ -850,7 +852,8 @@ def _all_backs(mi_scene, p, d, offset: float, points, table=None, lane=None):
     """mi.Bool per entry of ``points`` (mi.UInt32, indices into p and d): whether each of
     BURIED_DIRECTIONS cosine-distributed, stratified rays over the point's hemisphere meets the
     back of a one-sided surface (one ray a lane, BURIED_DIRECTIONS lanes a point; ``lane``: their
-    arange, made by a recorded caller outside its recording, whose widths are its inputs')."""
+    arange, or None to make it here: a recorded caller passes it in, since a width read inside a
+    recording is kept as a number)."""
     lane = dr.arange(mi.UInt32, dr.width(points) * BURIED_DIRECTIONS) if lane is None else lane
     point = dr.gather(mi.UInt32, points, lane // BURIED_DIRECTIONS)
     k = mi.Float(lane % BURIED_DIRECTIONS)
@@ -876,9 +879,9 @@ def _buried_counts(mi_scene, one_sided, p, d, point_lane, ray_lane, offset: floa
     return dr.block_sum(dr.select(buried, 1.0, 0.0), per_node)
 
 
-#: Most points a recorded buried-share launch takes (``_record_buried``): a refinement pass's new
-#: leaves, not the first measure of every input triangle, whose hemisphere rays the traced launch
-#: casts for the few points under a back alone.
+#: Most points a recorded buried-share launch takes (``_record_buried``): beyond them (the first
+#: measure of a large scene's every triangle) the traced launch, which casts hemisphere rays for
+#: the few points under a back alone, costs less than rays for every point.
 FROZEN_BURIED_POINTS = 1 << 16
 
 
