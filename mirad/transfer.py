@@ -468,19 +468,15 @@ def _freeze(function):
 _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
 _frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
                                                                                 samples))
-# (and the launches a refinement pass makes beside its waves: the buried shares of its new
-# leaves and the reverse form factors of its near links)
-_frozen_buried = _freeze(lambda *args: _buried_counts(*args))
-_frozen_buried_share = _freeze(lambda *args: _buried_share_counts(*args))
+# (and the reverse form factors of a refinement pass's near links)
 _frozen_reverse = _freeze(lambda *args: _reverse_values(*args))
 
 
 def wave_recordings() -> int:
-    """How many times this process recorded a frozen wave's halves, a buried-share launch or a
-    reverse form factor's (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved
-    before with the same settings adds none."""
-    return sum(f.n_recordings for f in (_frozen_aim, _frozen_sums, _frozen_buried, _frozen_buried_share,
-                                       _frozen_reverse))
+    """How many times this process recorded a frozen wave's halves or a reverse form factor's
+    launch (``FREEZE_WAVES``): once per kind of call; a solve of a scene solved before with the
+    same settings adds none."""
+    return sum(f.n_recordings for f in (_frozen_aim, _frozen_sums, _frozen_reverse))
 
 
 def _sums(r_count: int, point_lane, lanes: Lanes, volume_norm, *also) -> tuple:
@@ -667,13 +663,9 @@ def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: f
     per_launch = max(1, MAX_LANES // max(s, 1))
     for a in range(0, n, per_launch):
         b = min(n, a + per_launch)
-        p, d = to_vector3(points[a:b].reshape(-1, 3)), to_vector3(normals[a:b].reshape(-1, 3))
-        if _record_buried(b - a, s):
-            counts = _frozen_buried(mi_scene, _one_sided(mi_scene), p, d, dr.arange(mi.UInt32, (b - a) * s),
-                                    dr.arange(mi.UInt32, (b - a) * s * BURIED_DIRECTIONS), offset, s)
-        else:
-            counts = dr.block_sum(dr.select(_buried(mi_scene, p, d, offset), 1.0, 0.0), s)
-        out[a:b] = np.asarray(counts.numpy(), np.float64) / s
+        inside = _buried(mi_scene, to_vector3(points[a:b].reshape(-1, 3)), to_vector3(normals[a:b].reshape(-1, 3)),
+                         offset)
+        out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), s).numpy(), np.float64) / s
     return out
 
 
@@ -705,24 +697,15 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
     m = len(ids)
     out = np.zeros(m)
     per_launch = max(1, MAX_LANES // max(count, 1))
-    arrays, seed_dr = buf.arrays(), opaque_u32(seed)
     for a in range(0, m, per_launch):
         b = min(m, a + per_launch)
-        share = _frozen_buried_share if _record_buried(b - a, count) else _buried_share_counts
-        counts = share(mi_scene, _one_sided(mi_scene), arrays, to_uint(ids[a:b]), dr.arange(mi.UInt32, (b - a) * count),
-                       seed_dr, count, offset)
-        out[a:b] = np.asarray(counts.numpy(), np.float64) / count
+        lane = dr.arange(mi.UInt32, (b - a) * count)
+        node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
+        key = hash_u32(node ^ hash_u32(opaque_u32(seed) + 0x5BD1E995))
+        y, n, _, _ = source_point(buf, node, lane % count, count, key)
+        inside = _buried(mi_scene, y, n, offset, enclosed=False)
+        out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
     return out
-
-
-def _buried_share_counts(mi_scene, one_sided, buf: NodeArrays, ids, lane, seed, count: int, offset: float):
-    """mi.Float (M,): how many of ``count`` points (``source_point``) of each node ids (M,)
-    the ray along their normal finds under the back of a one-sided surface (``buried_share``);
-    ``lane``: an arange over the M count points."""
-    node = dr.gather(mi.UInt32, ids, lane // count)
-    key = hash_u32(node ^ hash_u32(seed + 0x5BD1E995))
-    y, n, _, _ = source_point(buf, node, lane % count, count, key)
-    return dr.block_sum(dr.select(_meets_back(mi_scene, y, n, n, offset, one_sided), 1.0, 0.0), count)
 
 
 def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.ndarray, recv: np.ndarray,
@@ -802,29 +785,26 @@ def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offse
     return out, m * ESCAPE_RAYS
 
 
-@functools.lru_cache(maxsize=2)           # (it holds the last two scenes: Dr.Jit's have no weak references)
-def _one_sided(mi_scene) -> tuple:
-    """(mi.Bool, mi.UInt32 of width 1): a table indexed by a shape's registry id
-    (``dr.reinterpret_array`` of its pointer) of whether its BSDF scatters on its front side
-    only, and the table's width (an opaque variable, not a number: a recorded launch reads it
-    as an input). (A table read per hit, not a call of each hit's BSDF: the call's trace took
-    half of ``_meets_back``'s, about 0.7 ms a launch.)"""
+@functools.lru_cache(maxsize=4)
+def _one_sided(mi_scene) -> mi.Bool:
+    """mi.Bool indexed by a shape's registry id (``dr.reinterpret_array`` of its pointer): whether
+    its BSDF scatters on its front side only. (A table read per hit, not a call of each hit's
+    BSDF: the call's trace took half of ``_meets_back``'s, about 0.7 ms a launch.)"""
     shapes = mi_scene.shapes_dr()
     ids = dr.reinterpret_array(mi.UInt32, shapes)
     table = dr.zeros(mi.Bool, int(dr.max(ids)[0]) + 1 if dr.width(ids) else 1)
     dr.scatter(table, (shapes.bsdf().flags() & int(mi.BSDFFlags.BackSide)) == 0, ids)
-    return table, opaque_u32(dr.width(table))
+    return table
 
 
-def _meets_back(mi_scene, p, w, d, offset: float, table=None):
+def _meets_back(mi_scene, p, w, d, offset: float):
     """mi.Bool: rays from points p (normals d, lifted ``offset`` along them) in directions w
-    whose first hit is the back of a one-sided surface; ``table``: ``_one_sided(mi_scene)``
-    (given where the call is recorded: a recording takes only what its inputs hold)."""
+    whose first hit is the back of a one-sided surface."""
     ray = mi.Ray3f(p + d * offset, w)
     si = mi_scene.ray_intersect(ray)
-    table, width = _one_sided(mi_scene) if table is None else table
+    table = _one_sided(mi_scene)
     shape = dr.reinterpret_array(mi.UInt32, si.shape)
-    one_sided = dr.gather(mi.Bool, table, shape, si.is_valid() & (shape < width))
+    one_sided = dr.gather(mi.Bool, table, shape, si.is_valid() & (shape < dr.width(table)))
     # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
     # geometric normal si.n points the other way)
     return si.is_valid() & (dr.dot(si.sh_frame.n, w) > 0) & one_sided
@@ -843,19 +823,9 @@ def _buried(mi_scene, p, d, offset: float, *, enclosed: bool = True):
     count = dr.width(candidates)
     if count == 0:
         return inside
-    out = dr.zeros(mi.Bool, dr.width(inside))
-    dr.scatter(out, _all_backs(mi_scene, p, d, offset, candidates), candidates)
-    return out
-
-
-def _all_backs(mi_scene, p, d, offset: float, points, table=None, lane=None):
-    """mi.Bool per entry of ``points`` (mi.UInt32, indices into p and d): whether each of
-    BURIED_DIRECTIONS cosine-distributed, stratified rays over the point's hemisphere meets the
-    back of a one-sided surface (one ray a lane, BURIED_DIRECTIONS lanes a point; ``lane``: their
-    arange, or None to make it here: a recorded caller passes it in, since a width read inside a
-    recording is kept as a number)."""
-    lane = dr.arange(mi.UInt32, dr.width(points) * BURIED_DIRECTIONS) if lane is None else lane
-    point = dr.gather(mi.UInt32, points, lane // BURIED_DIRECTIONS)
+    # (one ray per lane, BURIED_DIRECTIONS lanes a candidate)
+    lane = dr.arange(mi.UInt32, count * BURIED_DIRECTIONS)
+    point = dr.gather(mi.UInt32, candidates, lane // BURIED_DIRECTIONS)
     k = mi.Float(lane % BURIED_DIRECTIONS)
     u = (k + 0.5) / BURIED_DIRECTIONS
     turn = k * 0.6180339887498949
@@ -863,32 +833,8 @@ def _all_backs(mi_scene, p, d, offset: float, points, table=None, lane=None):
     sin_t = dr.sqrt(u)
     local = mi.Vector3f(sin_t * dr.cos(phi), sin_t * dr.sin(phi), dr.sqrt(1.0 - u))
     pc, dc = dr.gather(type(p), p, point), dr.gather(type(d), d, point)
-    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset, table),
-                                   1.0, 0.0), BURIED_DIRECTIONS)
-    return backs == BURIED_DIRECTIONS
-
-
-def _buried_counts(mi_scene, one_sided, p, d, point_lane, ray_lane, offset: float, per_node: int):
-    """mi.Float (N,): how many of each node's ``per_node`` points p (normals d, (N per_node,),
-    node-major) are buried (``_buried``, enclosed), every point's hemisphere rays traced, not
-    only those of the points whose normal's ray met a back: no compaction, whose width only the
-    kernel knows, so that the launch can be recorded and replayed (``_frozen_buried``).
-    ``point_lane``, ``ray_lane``: aranges over the points and over their BURIED_DIRECTIONS rays."""
-    inside = _meets_back(mi_scene, p, d, d, offset, one_sided)
-    buried = inside & _all_backs(mi_scene, p, d, offset, point_lane, one_sided, ray_lane)
-    return dr.block_sum(dr.select(buried, 1.0, 0.0), per_node)
-
-
-#: Most points a recorded buried-share launch takes (``_record_buried``): beyond them (the first
-#: measure of a large scene's every triangle) the traced launch, which casts hemisphere rays for
-#: the few points under a back alone, costs less than rays for every point.
-FROZEN_BURIED_POINTS = 1 << 16
-
-
-def _record_buried(nodes: int, per_node: int) -> bool:
-    """Whether a buried-share launch of ``nodes`` nodes of ``per_node`` points each replays a
-    recording (FREEZE_WAVES) rather than being traced: its trace, ``_meets_back``'s call of every
-    shape's intersection, took 1-2 ms a launch on the 36-triangle Cornell box, a tenth of a warm
-    solve, and 90 ms with 400 shapes; a replay takes 0.3 and 6 ms. Not for one node (its sums of
-    width 1 a recording takes for a scalar) nor for more than FROZEN_BURIED_POINTS points."""
-    return FREEZE_WAVES and 1 < nodes and nodes * per_node <= FROZEN_BURIED_POINTS
+    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset), 1.0, 0.0),
+                         BURIED_DIRECTIONS)
+    out = dr.zeros(mi.Bool, dr.width(inside))
+    dr.scatter(out, backs == BURIED_DIRECTIONS, candidates)
+    return out

@@ -137,31 +137,38 @@ def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_no
     assert "frozen function" not in capfd.readouterr().err
 
 
-def test_recorded_buried_shares_are_the_traced_ones(monkeypatch):
-    """The buried shares of a refinement pass's new leaves replay recorded launches
-    (``transfer._record_buried``): the traced launches' shares, bitwise, for launches of any
-    number of nodes, and on a second copy of the scene, whose shapes have other registry ids."""
+def test_the_one_sided_table_reads_each_hits_bsdf():
+    """The buried-surface test reads whether a hit's BSDF scatters on its front only from a table
+    by shape id (``transfer._one_sided``), not by calling the hit's BSDF: both say the same for
+    rays from everywhere, in every direction, among one-sided and two-sided shapes (a two-sided
+    floor, one-sided boxes and a one-sided light)."""
+    import drjit as dr
+    import mitsuba as mi
     from mirad import transfer
-    record = transfer._record_buried
-    scenes = [mirad.load_scene(SCENES / "cornell-box" / "scene.xml") for _ in range(2)]
-    partial = 0
-    for scene in scenes:
-        state = core.build(scene, make_settings(tolerance=0.1, **HIER))
-        nodes, buf = state.nodes, transfer.NodeBuffers.upload(state.nodes)
-        tri = np.flatnonzero(nodes.kind == core.TRIANGLE)
-        for m in (2, 7, len(tri)):
-            ids = tri[:m]
-            shares = []
-            for recorded in (False, True):
-                monkeypatch.setattr(transfer, "_record_buried", record if recorded else (lambda *_: False))
-                shares.append((transfer.buried_fraction(scene.mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids],
-                                                        state.offset),
-                               transfer.buried_share(scene.mi_scene, buf, ids, 64, 3, state.offset)))
-            for traced, replayed in zip(*shares):
-                np.testing.assert_array_equal(replayed, traced)
-            partial += int(np.count_nonzero((shares[1][1] > 0) & (shares[1][1] < 1)))
-    # (the floor's triangles under the boxes: partly buried, so the shares can differ)
-    assert partial > 0
+    mi_scene = mi.load_dict({
+        "type": "scene",
+        "floor": {"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}},
+                  "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(2)},
+        "box": {"type": "cube", "bsdf": {"type": "diffuse"},
+                "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).scale(0.4)},
+        "lamp": {"type": "rectangle", "emitter": {"type": "area"},
+                 "to_world": mi.ScalarTransform4f().translate([0, 1.5, 0]).rotate([1, 0, 0], 90).scale(0.3)}})
+    rng = np.random.default_rng(4)
+    n = 4096
+    p = transfer.to_vector3(rng.uniform(-1.5, 1.5, (n, 3)) * [1, 0.6, 1] + [0, 0.6, 0])
+    w = transfer.to_vector3(rng.normal(size=(n, 3)))
+    w = dr.normalize(w)
+    got = np.asarray(transfer._meets_back(mi_scene, p, w, w, 1e-4).numpy(), bool)
+    ray = mi.Ray3f(p + w * 1e-4, w)
+    si = mi_scene.ray_intersect(ray)
+    back = si.is_valid() & (dr.dot(si.sh_frame.n, w) > 0)
+    front_only = (si.bsdf(ray).flags() & int(mi.BSDFFlags.BackSide)) == 0
+    expected = np.asarray((back & front_only).numpy(), bool)
+    hit_back = np.asarray(back.numpy(), bool)
+    np.testing.assert_array_equal(got, expected)
+    # (the rays meet backs of both kinds: the two-sided floor's underside, which is not a back to
+    # bury under, and the one-sided box's inside, which is)
+    assert expected.sum() > 50 and (hit_back & ~expected).sum() > 50
 
 
 def test_a_wave_recorded_for_some_links_replays_exactly_for_others(monkeypatch):
