@@ -43,7 +43,7 @@ from .scene import Scene
 from .errors import SettingsError, warn
 from .settings import Settings, shape_patterns
 from .transfer import (NodeBuffers, blocked, buried_fraction, buried_share, escaping_share, evaluate, leaves_blocked,
-                       point_to_polygon_dr, reverse_form_factor)
+                       one_sided_table, point_to_polygon_dr, reverse_form_factor)
 from ._runtime import exact_arithmetic
 from .arrays import (RAY_OFFSET, channel_max, group_sum, put_rows, row_norm, row_slices, row_sum, shadow_ray_length,
                      take_rows, to_bool, to_uint, to_vector3)
@@ -161,6 +161,8 @@ def _surface(scene: Scene, channels: int, seed: int) -> Surface:
 #: The key of the node tree a solve keeps on its scene (``Scene.prepared``): (the surface it was
 #: built over, the nodes, their order, the root, the triangles' buried shares).
 KEPT_TREE = "hierarchical tree"
+#: The key of the one-sided shapes' table kept on the scene (``transfer.one_sided_table``).
+KEPT_ONE_SIDED = "one-sided shapes"
 
 
 def build(scene: Scene, settings: Settings) -> State:
@@ -498,7 +500,12 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
     if len(ids):
         nodes = state.nodes
         mi_scene = state.scene.mi_scene
-        share = buried_fraction(mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset)
+        # (which shapes are one-sided: kept on the scene with the Mitsuba scene it was read from)
+        kept = state.scene.prepared.get(KEPT_ONE_SIDED)
+        if kept is None or kept[0] is not mi_scene:
+            kept = state.scene.prepared[KEPT_ONE_SIDED] = (mi_scene, one_sided_table(mi_scene))
+        table = kept[1]
+        share = buried_fraction(mi_scene, nodes.src_pts[ids], nodes.src_nrm[ids], state.offset, table)
         some = (share > 0) & (share < 1)
         state.buried[ids] = np.where(some, 0.0, share)
         partial = ids[some]
@@ -510,7 +517,7 @@ def _measure_buried(state: State, ids: np.ndarray) -> None:
         for count in np.unique(counts):
             group = partial[counts == count]
             state.buried[group] = buried_share(mi_scene, _buffers(state), group, int(count), state.settings.seed,
-                                               state.offset)
+                                               state.offset, table)
 
 
 def _grow_direct(state: State, n_before: int) -> None:

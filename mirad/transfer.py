@@ -18,7 +18,6 @@ where refine.py turns them into errors.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -650,7 +649,7 @@ def _reach(buf: NodeArrays, c, x, nx):
     return dr.gather(mi.Float, buf.area, c) * cosine / dr.maximum(dr.maximum(dist2, radius * radius), _TINY)
 
 
-def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float) -> np.ndarray:
+def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float, table=None) -> np.ndarray:
     """(N,) fraction of each node's points (N, S, 3), with normals (N, S, 3), that lie
     inside closed geometry: a ray from the point along its normal first meets the back of a
     one-sided surface (the floor under a box standing on it), and so does every ray of a set
@@ -660,11 +659,12 @@ def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: f
     node sends is its power over the area that is not buried (``core.solve``)."""
     n, s = points.shape[:2]
     out = np.zeros(n)
+    table = one_sided_table(mi_scene) if table is None else table
     per_launch = max(1, MAX_LANES // max(s, 1))
     for a in range(0, n, per_launch):
         b = min(n, a + per_launch)
         inside = _buried(mi_scene, to_vector3(points[a:b].reshape(-1, 3)), to_vector3(normals[a:b].reshape(-1, 3)),
-                         offset)
+                         offset, table)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), s).numpy(), np.float64) / s
     return out
 
@@ -687,7 +687,8 @@ def blocked(mi_scene, start: np.ndarray, end: np.ndarray, normal: np.ndarray, of
     return out
 
 
-def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: int, offset: float) -> np.ndarray:
+def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: int, offset: float,
+                 table=None) -> np.ndarray:
     """(M,) ``buried_fraction`` of triangle nodes ids from ``count`` stratified points on
     each (a Hammersley set shifted per node, on the true surface of curved patches), made
     and counted in the wave: only the shares come back. It measures the nodes that
@@ -696,6 +697,7 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
     along the normal alone."""
     m = len(ids)
     out = np.zeros(m)
+    table = one_sided_table(mi_scene) if table is None else table
     per_launch = max(1, MAX_LANES // max(count, 1))
     for a in range(0, m, per_launch):
         b = min(m, a + per_launch)
@@ -703,7 +705,7 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
         node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
         key = hash_u32(node ^ hash_u32(opaque_u32(seed) + 0x5BD1E995))
         y, n, _, _ = source_point(buf, node, lane % count, count, key)
-        inside = _buried(mi_scene, y, n, offset, enclosed=False)
+        inside = _buried(mi_scene, y, n, offset, table, enclosed=False)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
     return out
 
@@ -785,11 +787,11 @@ def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offse
     return out, m * ESCAPE_RAYS
 
 
-@functools.lru_cache(maxsize=4)
-def _one_sided(mi_scene) -> mi.Bool:
+def one_sided_table(mi_scene) -> mi.Bool:
     """mi.Bool indexed by a shape's registry id (``dr.reinterpret_array`` of its pointer): whether
     its BSDF scatters on its front side only. (A table read per hit, not a call of each hit's
-    BSDF: the call's trace took half of ``_meets_back``'s, about 0.7 ms a launch.)"""
+    BSDF: the call's trace took half of ``_meets_back``'s, about 0.7 ms a launch.) Made once a
+    scene: it calls every shape's BSDF (``core`` keeps it on the scene)."""
     shapes = mi_scene.shapes_dr()
     ids = dr.reinterpret_array(mi.UInt32, shapes)
     table = dr.zeros(mi.Bool, int(dr.max(ids)[0]) + 1 if dr.width(ids) else 1)
@@ -797,12 +799,11 @@ def _one_sided(mi_scene) -> mi.Bool:
     return table
 
 
-def _meets_back(mi_scene, p, w, d, offset: float):
+def _meets_back(mi_scene, p, w, d, offset: float, table):
     """mi.Bool: rays from points p (normals d, lifted ``offset`` along them) in directions w
-    whose first hit is the back of a one-sided surface."""
+    whose first hit is the back of a one-sided surface (``table``: ``one_sided_table``)."""
     ray = mi.Ray3f(p + d * offset, w)
     si = mi_scene.ray_intersect(ray)
-    table = _one_sided(mi_scene)
     shape = dr.reinterpret_array(mi.UInt32, si.shape)
     one_sided = dr.gather(mi.Bool, table, shape, si.is_valid() & (shape < dr.width(table)))
     # (the side Mitsuba lights is its shading normal's: under a mirroring transform the
@@ -810,13 +811,13 @@ def _meets_back(mi_scene, p, w, d, offset: float):
     return si.is_valid() & (dr.dot(si.sh_frame.n, w) > 0) & one_sided
 
 
-def _buried(mi_scene, p, d, offset: float, *, enclosed: bool = True):
+def _buried(mi_scene, p, d, offset: float, table, *, enclosed: bool = True):
     """mi.Bool: points p (normals d) inside closed geometry: their ray along the normal first
     meets the back of a one-sided surface (the floor under a box standing on it) and, with
     ``enclosed``, so does each of BURIED_DIRECTIONS rays spread over their hemisphere (the
     normal's ray alone read the ceiling above a one-sided lamp hung below it as enclosed, and
     gave it no light). Only the points whose normal's ray meets a back trace the others."""
-    inside = _meets_back(mi_scene, p, d, d, offset)
+    inside = _meets_back(mi_scene, p, d, d, offset, table)
     if not enclosed:
         return inside
     candidates = dr.compress(inside)
@@ -833,7 +834,7 @@ def _buried(mi_scene, p, d, offset: float, *, enclosed: bool = True):
     sin_t = dr.sqrt(u)
     local = mi.Vector3f(sin_t * dr.cos(phi), sin_t * dr.sin(phi), dr.sqrt(1.0 - u))
     pc, dc = dr.gather(type(p), p, point), dr.gather(type(d), d, point)
-    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset), 1.0, 0.0),
+    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset, table), 1.0, 0.0),
                          BURIED_DIRECTIONS)
     out = dr.zeros(mi.Bool, dr.width(inside))
     dr.scatter(out, backs == BURIED_DIRECTIONS, candidates)

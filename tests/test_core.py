@@ -139,7 +139,7 @@ def test_recorded_waves_solve_bitwise_as_traced_ones_and_a_warm_solve_records_no
 
 def test_the_one_sided_table_reads_each_hits_bsdf():
     """The buried-surface test reads whether a hit's BSDF scatters on its front only from a table
-    by shape id (``transfer._one_sided``), not by calling the hit's BSDF: both say the same for
+    by shape id (``transfer.one_sided_table``), not by calling the hit's BSDF: both say the same for
     rays from everywhere, in every direction, among one-sided and two-sided shapes (a two-sided
     floor, one-sided boxes and a one-sided light)."""
     import drjit as dr
@@ -158,7 +158,8 @@ def test_the_one_sided_table_reads_each_hits_bsdf():
     p = transfer.to_vector3(rng.uniform(-1.5, 1.5, (n, 3)) * [1, 0.6, 1] + [0, 0.6, 0])
     w = transfer.to_vector3(rng.normal(size=(n, 3)))
     w = dr.normalize(w)
-    got = np.asarray(transfer._meets_back(mi_scene, p, w, w, 1e-4).numpy(), bool)
+    table = transfer.one_sided_table(mi_scene)
+    got = np.asarray(transfer._meets_back(mi_scene, p, w, w, 1e-4, table).numpy(), bool)
     ray = mi.Ray3f(p + w * 1e-4, w)
     si = mi_scene.ray_intersect(ray)
     back = si.is_valid() & (dr.dot(si.sh_frame.n, w) > 0)
