@@ -163,12 +163,13 @@ def group_mean(group: np.ndarray, values: np.ndarray, count: int, *, weights=Non
 
 
 def channel_max(a: np.ndarray) -> np.ndarray:
-    """(N,) largest value of each row of a (N, C) array with few columns (channels).
+    """(N,) largest value of each row of a (N, C) array with few columns (channels); of any
+    array (..., C), the largest along its last axis (...).
 
     Elementwise maxima over the columns: ``a.max(axis=1)`` walks each short row on its own
     and is about five times slower on (N, 3) arrays, once per refinement pass."""
     a = np.asarray(a)
-    return np.maximum.reduce([a[:, c] for c in range(a.shape[1])]) if a.shape[1] > 1 else a[:, 0].copy()
+    return np.maximum.reduce([a[..., c] for c in range(a.shape[-1])]) if a.shape[-1] > 1 else a[..., 0].copy()
 
 
 def row_sum(a: np.ndarray) -> np.ndarray:

@@ -2794,8 +2794,7 @@ def children_deviation(nodes: Nodes, b_node: np.ndarray, visible: np.ndarray) ->
     has = kids >= 0
     safe = np.where(has, kids, 0)
     w = np.where(has, visible[safe], 0.0)
-    diff = np.abs(np.take(b_node, safe, axis=0) - b_node[:, None, :])
-    d = np.maximum.reduce([diff[:, :, c] for c in range(diff.shape[2])]) if diff.shape[2] > 1 else diff[:, :, 0]
+    d = channel_max(np.abs(np.take(b_node, safe, axis=0) - b_node[:, None, :]))
     total = row_sum(w)
     return np.where(total > 0, row_sum(w * d) / np.maximum(total, 1e-300), 0.0)
 

@@ -834,8 +834,8 @@ def _buried(mi_scene, p, d, offset: float, table, *, enclosed: bool = True):
     sin_t = dr.sqrt(u)
     local = mi.Vector3f(sin_t * dr.cos(phi), sin_t * dr.sin(phi), dr.sqrt(1.0 - u))
     pc, dc = dr.gather(type(p), p, point), dr.gather(type(d), d, point)
-    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset, table), 1.0, 0.0),
-                         BURIED_DIRECTIONS)
+    backs = dr.block_sum(dr.select(_meets_back(mi_scene, pc, mi.Frame3f(dc).to_world(local), dc, offset, table),
+                                   1.0, 0.0), BURIED_DIRECTIONS)
     out = dr.zeros(mi.Bool, dr.width(inside))
     dr.scatter(out, backs == BURIED_DIRECTIONS, candidates)
     return out

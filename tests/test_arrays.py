@@ -183,3 +183,6 @@ def test_row_sum_and_channel_max_are_numpys_reductions(n, k, seed, zeros):
     assert np.array_equal(np.signbit(got), np.signbit(expected))
     if n:
         assert np.array_equal(channel_max(a), a.max(axis=1))
+        # (and along the last axis of any array: a node's children's channels)
+        stacked = np.stack([a, -a], axis=1)
+        assert np.array_equal(channel_max(stacked), stacked.max(axis=2))
