@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 
 from .linear import LeafSystem, solve_system
 from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, Surface,
-                    build_nodes, split_triangles)
+                    build_nodes, leaf_holding, split_triangles)
 from .refine import (ERRORS_OF, EXPECTED_ABS, MAX_RAYS_PER_POINT, Decision, Links, SourceState, centre_distance,
                      choose, distance_to_source, face_mean_errors, holding_chains_opened, holds_receiver, kernel_change,
                      link_values, power_errors, reciprocal_error, noise_visibility, refinement_threshold, unresolved,
@@ -1089,6 +1089,9 @@ OWN_RADIOSITY = True
 #: aimed at, as a volume cluster's do (``SampleLog``), not the cluster's mean over parts the
 #: receiver does not see.
 FACE_SAMPLES = True
+#: Those samples bring the radiosity of the leaf they are on, not their triangle's mean over its
+#: leaves (``nodes.leaf_holding``).
+SAMPLED_LEAVES = True
 
 
 class SampleLog:
@@ -1118,22 +1121,24 @@ class SampleLog:
         self.last[rows] = len(self.waves)
         self.waves.append((rows, found))
 
-    def split(self, state: State, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray):
+    def split(self, state: State, rows: np.ndarray, recv: np.ndarray, rays: np.ndarray, limit: int):
         """Transfers of pairs recv (M,) (``rays`` (M,) per point) from the samples of rows
-        ``rows`` (M,), split by sampled triangle: (receiver (S,), triangle node (S,), transfer (S,),
-        pair (S,), the sample's position in rows)."""
+        ``rows`` (M,), split by where each sample was: (receiver (S,), source node (S,),
+        transfer (S,), pair (S,)). The source node is the leaf that holds the sample (SAMPLED_LEAVES),
+        of the nodes numbered under ``limit``, or the triangle it is on."""
         pair_of = np.full(len(self.last), -1, np.int64)     # each row's pair, or -1
         pair_of[rows] = np.arange(len(rows))
         # (each pair's point weights over its rays per point, looked up per sample)
         weight = (state.nodes.recv_w[recv] / rays[:, None].astype(np.float32)).ravel()
         parts = []
         for wave, (wave_rows, found) in enumerate(self.waves):
-            for link, point, tri, value in found:
+            for link, point, tri, value, place in found:
                 row = wave_rows[link]
                 pair = pair_of[row]
                 keep = (pair >= 0) & (self.last[row] == wave)
                 pair = pair[keep]
-                parts.append((recv[pair], tri[keep], weight[pair * RECEIVER_POINTS + point[keep]] * value[keep], pair))
+                source = leaf_holding(state.nodes, tri[keep], place[keep], limit) if SAMPLED_LEAVES else tri[keep]
+                parts.append((recv[pair], source, weight[pair * RECEIVER_POINTS + point[keep]] * value[keep], pair))
         if not parts:
             return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.int64)
         return tuple(np.concatenate(c) for c in zip(*parts))
@@ -2505,7 +2510,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             by_triangle |= (nodes.kind[from_src] == FACE) & (node_ff > 0) & partly_hidden
         by_triangle = np.flatnonzero(by_triangle)
         sampled = log.split(state, np.concatenate([pair_row, stay_row])[by_triangle], on_node[by_triangle],
-                            np.concatenate([pair_rays, stay_rays])[by_triangle])
+                            np.concatenate([pair_rays, stay_rays])[by_triangle], n)
         # (a face cluster's samples are shares of its transfer: normed to it, pair by pair)
         face = ~volume[by_triangle]
         if face.any():

@@ -40,6 +40,9 @@ RECEIVER_POINTS = 7
 SOURCE_POINTS = 16
 #: Longest-edge^2 / area above which a triangle splits in two across its longest edge.
 SLIVER_RATIO = 8.0
+#: A point's two coordinates on a triangle (``transfer.pack_place``) are kept as 16-bit integers
+#: over [0, 1]: a leaf ten splits below its triangle is 1/1024 of it across, 64 steps.
+PLACE_SCALE = 65535.0
 #: Two triangles share a plane when their normals' components agree to this (~0.06 degrees)
 #: and their centroids' heights along their mean normal to this fraction of the scene
 #: diagonal, up to chaining (``planar_groups``).
@@ -592,8 +595,7 @@ def split_triangles(nodes: Nodes, ids: np.ndarray, surf: Surface) -> np.ndarray:
     if not len(ids):
         return ids
     v = nodes.poly[ids, :3]
-    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], 1)
-    len2 = np.einsum("nij,nij->ni", edges, edges)
+    len2 = _edge_lengths2(v)
     sliver = len2.max(axis=1) > SLIVER_RATIO * nodes.area[ids]
     q, b = ids[~sliver], ids[sliver]
     kids = [_midpoint_children(nodes.poly[q, :3]), _bisect_children(nodes.poly[b, :3], len2[sliver])]
@@ -623,6 +625,53 @@ def split_triangles(nodes: Nodes, ids: np.ndarray, surf: Surface) -> np.ndarray:
     nodes.append(kid)
     _triangle_points(nodes, new_ids, new_verts, nodes.normal[new_ids], [c[patch] for c in surf.curve], surf.seed)
     return parents
+
+
+def _edge_lengths2(v: np.ndarray) -> np.ndarray:
+    """(M, 3) squared lengths of the edges v0v1, v1v2, v2v0 of triangles v (M, 3, 3)."""
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], 1)
+    return np.einsum("nij,nij->ni", edges, edges)
+
+
+def leaf_holding(nodes: Nodes, tri: np.ndarray, place: np.ndarray, limit: int | None = None) -> np.ndarray:
+    """(S,) int64: the leaf below each triangle node tri (S,) that holds the point ``place``
+    (S,) uint32 on it (``transfer.pack_place``), following the splits of ``split_triangles``
+    down; with ``limit``, no lower than the nodes numbered under it (those made later stop at
+    their parent)."""
+    node = np.asarray(tri, np.int64).copy()
+    limit = len(nodes) if limit is None else limit
+    first = nodes.children[node, 0]
+    todo = np.flatnonzero((first >= 0) & (first < limit))
+    if not len(todo):
+        return node
+    su = (place[todo] >> 16).astype(np.float64) / PLACE_SCALE
+    v = (place[todo] & 0xFFFF).astype(np.float64) / PLACE_SCALE
+    bary = np.stack([1.0 - su, su * (1.0 - v), su * v], 1)     # on the node's corners 0, 1, 2
+    at = node[todo]
+    going = np.arange(len(todo))
+    while len(going):
+        n, b = at[going], bary[going]
+        four = nodes.children[n, 3] >= 0
+        # midpoint split: the corner child whose corner's coordinate is over a half, else the middle
+        corner = np.where(b[:, 0] >= 0.5, 0, np.where(b[:, 1] >= 0.5, 1, np.where(b[:, 2] >= 0.5, 2, 3)))
+        mid = np.where((np.arange(3)[None, :] == corner[:, None]), 2.0 * b - 1.0, 2.0 * b)
+        mid[corner == 3] = 1.0 - 2.0 * b[corner == 3][:, [2, 0, 1]]
+        slot = corner
+        if not four.all():
+            # bisected sliver (its longest edge a b halved at m; children (a, m, c), (m, b, c))
+            k = np.argmax(_edge_lengths2(nodes.poly[n, :3]), axis=1)
+            rot = (np.arange(3)[None, :] + k[:, None]) % 3
+            la, lb, lc = np.take_along_axis(b, rot, axis=1).T
+            left = la >= lb
+            half = np.where(left[:, None], np.stack([la - lb, 2.0 * lb, lc], 1), np.stack([2.0 * la, lb - la, lc], 1))
+            slot = np.where(four, corner, np.where(left, 0, 1))
+            mid = np.where(four[:, None], mid, half)
+        bary[going] = mid
+        at[going] = nodes.children[n, slot]
+        nxt = nodes.children[at[going], 0]
+        going = going[(nxt >= 0) & (nxt < limit)]
+    node[todo] = at
+    return node
 
 
 def _midpoint_children(v: np.ndarray) -> np.ndarray:

@@ -25,8 +25,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ._runtime import exact_arithmetic  # (and the LLVM set-up before mitsuba)
-from .nodes import (FACE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes, cluster_children,
-                    flat_nodes)
+from .nodes import (FACE, PLACE_SCALE, PLANE_NORMAL_TOL, RECEIVER_POINTS, SOURCE_POINTS, TRIANGLE, VOLUME, Nodes,
+                    cluster_children, flat_nodes)
 from .arrays import MAX_LANES, shadow_ray_length, to_bool, to_float, to_uint, to_vector3
 from .visibility import hash_u32, opaque_u32, shifted_hammersley, to_unit, triangle_point
 
@@ -99,11 +99,12 @@ class PointTransfers:
     #                        sampled transfer (its sampling variance); 0 for planar sources
     rays: int            # shadow rays traced
     #: with ``evaluate(..., samples=True)``: the arriving samples of volume-cluster sources
-    #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,); ``_arriving``): a
-    #: link's transfer is sum_i w_i gv_i with gv_i the mean of point i's R samples, so its
-    #: samples over R split it by the triangle each came from (``source_point``). And those of
-    #: face clusters some of whose rays were blocked: each its point's exact form factor times
-    #: its ray's kernel, shares of the link's transfer that are not normed to it
+    #: (link (S,), point (S,), triangle node (S,), sampled transfer (S,), place on the triangle
+    #: (S,); ``_arriving``): a link's transfer is sum_i w_i gv_i with gv_i the mean of point
+    #: i's R samples, so its samples over R split it by the triangle each came from
+    #: (``source_point``). And those of face clusters some of whose rays were blocked: each its
+    #: point's exact form factor times its ray's kernel, shares of the link's transfer that are
+    #: not normed to it
     samples: tuple | None = None
 
 
@@ -192,24 +193,27 @@ def evaluate(mi_scene, buf: NodeBuffers, recv: np.ndarray, src: np.ndarray, *, r
     return PointTransfers(g, gv, gp, g2, rays, arrived)
 
 
-def _arriving(value, tri, k: int, r_count: int, first: int):
+def _arriving(value, tri, place, k: int, r_count: int, first: int):
     """The lanes whose volume-cluster sample ``value`` (mi.Float, evaluated, with the triangle
-    node ``tri`` it is on) arrived, as numpy: (link (S,) int64, counted from ``first``; point
-    (S,) uint8; triangle node (S,) int32; sampled transfer (S,) float32)."""
+    node ``tri`` it is on and its ``place`` there) arrived, as numpy: (link (S,) int64, counted
+    from ``first``; point (S,) uint8; triangle node (S,) int32; sampled transfer (S,) float32;
+    place (S,) uint32, ``pack_place``)."""
     lane = dr.compress(value > 0)
-    tri, value = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.Float, value, lane)
-    dr.eval(lane, tri, value)
+    tri, place = dr.gather(mi.UInt32, tri, lane), dr.gather(mi.UInt32, place, lane)
+    value = dr.gather(mi.Float, value, lane)
+    dr.eval(lane, tri, value, place)
     lane = np.asarray(lane.numpy(), np.int64)
     # (compact: a large canopy's gather keeps millions of them)
     return (lane // (k * r_count) + first, ((lane // r_count) % k).astype(np.uint8), np.asarray(tri.numpy(), np.int32),
-            np.asarray(value.numpy(), np.float32))
+            np.asarray(value.numpy(), np.float32), np.asarray(place.numpy(), np.uint32))
 
 
 def join_samples(found: list) -> tuple:
     """Parts of the arriving samples (``_arriving``'s, ``PointTransfers.samples``) concatenated,
     column by column (empty arrays for none)."""
     if not found:
-        return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32)
+        return (np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int32), np.zeros(0, np.float32),
+                np.zeros(0, np.uint32))
     return tuple(np.concatenate(c) for c in zip(*found))
 
 
@@ -260,6 +264,7 @@ class Lanes(NamedTuple):
     tri: object          # mi.UInt32: the triangle node the target is on
     g_weighted: object   # mi.Float: g_volume times its point's kernel over its triangle's mean kernel
     g_share: object      # mi.Float: a face cluster's g_exact times the ray's kernel (its share, before norming), else 0
+    place: object        # mi.UInt32: where on that triangle the target is (``source_point``)
 
 
 class Aimed(NamedTuple):
@@ -275,6 +280,7 @@ class Aimed(NamedTuple):
     length: object       # mi.Float: how far it goes (short of the lifted target)
     g_weighted: object   # as Lanes'
     g_share: object      # as Lanes'
+    place: object        # as Lanes'
 
 
 def _lanes(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: int, seed, offset: float,
@@ -337,7 +343,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
     t = ray_target(i, j, r_count, key, spread)
     # (a volume cluster's triangle is drawn by what it may send to the point, ``source_point``;
     # a periodic source's images are drawn by area)
-    y, ny, tri, drawn = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()),
+    y, ny, tri, drawn, place = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()),
                                      weigh_faces=weigh_faces)
     # a volume cluster: the exact form factor of the triangle the point is on, over the
     # probability of drawing it: unbiased, and bounded by the cluster's area over the
@@ -350,7 +356,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         kernel, g_volume, traced, v = image_visibility(mi_scene, periodic, x, nx, y, ny, planar, g_exact,
                                                        tri_corners, per_area, offset,
                                                        hash_u32(key ^ (i * 0x68E31DA4 + j * 0x2C1B3C6D)), volume_sample)
-        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume, _face_share(kind, g_exact, kernel))
+        return Lanes(g_exact, kernel, g_volume, traced, v, tri, g_volume, _face_share(kind, g_exact, kernel), place)
     o = x + nx * offset
     d = (y + ny * offset) - o
     dist2 = dr.squared_norm(d)
@@ -368,7 +374,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
         g_weighted = dr.select(g_volume > 0, kernel * (area_s * drawn / dr.pi), 0.0)
     traced = valid & ((g_exact > 0) | ~planar)
     return Aimed(g_exact, kernel, g_volume, traced, tri, o, d / dr.maximum(dist, _TINY),
-                 shadow_ray_length(dist, offset), g_weighted, _face_share(kind, g_exact, kernel))
+                 shadow_ray_length(dist, offset), g_weighted, _face_share(kind, g_exact, kernel), place)
 
 
 def _face_share(kind, g_exact, kernel):
@@ -383,7 +389,7 @@ def _shoot(mi_scene, aimed: Aimed) -> Lanes:
     ray.maxt = aimed.length
     v = dr.select(aimed.traced, dr.select(mi_scene.ray_test(ray, aimed.traced), 0.0, 1.0), 0.0)
     return Lanes(aimed.g_exact, aimed.kernel, aimed.g_volume, aimed.traced, v, aimed.tri, aimed.g_weighted,
-                 aimed.g_share)
+                 aimed.g_share, aimed.place)
 
 
 def volume_sample(x, nx, ny, tri_corners, per_area, planar, offset: float):
@@ -434,7 +440,7 @@ def _sampled_sums(r_count: int, point_lane, lanes: Lanes, samples: bool) -> tupl
         # caller norms over the link; only where some of the link's rays were blocked)
         hidden = dr.block_sum(lanes.g_share * lanes.v, per_link) < dr.block_sum(lanes.g_share, per_link)
         face = dr.select(dr.gather(mi.Bool, hidden, lane_link), lanes.g_share * lanes.v, 0.0)
-        sampled = (lanes.g_weighted * lanes.v * lane_norm + face, lanes.tri)
+        sampled = (lanes.g_weighted * lanes.v * lane_norm + face, lanes.tri, lanes.place)
     else:
         sampled = ()
     return _sums(r_count, point_lane, lanes, norm, *sampled) + sampled
@@ -545,9 +551,9 @@ WEIGH_FACES_IN_VOLUMES = True
 
 def source_point(buf: NodeArrays, s, t, pattern: int, key, x=None, nx=None, weigh_faces: bool = False):
     """Point t (of ``pattern``) on source nodes s, its normal (mi.Vector3f each), the
-    triangle node it is on (mi.UInt32) and the ratio (mi.Float) of the probability of
-    drawing that triangle by area to the probability it was drawn with, for the link whose
-    hash is ``key``.
+    triangle node it is on (mi.UInt32), the ratio (mi.Float) of the probability of
+    drawing that triangle by area to the probability it was drawn with, and where on the
+    triangle the point is (mi.UInt32, ``pack_place``), for the link whose hash is ``key``.
 
     Each link draws its own stratified set: a Hammersley set shifted per link (every
     receiver point of a link aims at the same ``pattern`` points, so a ray to each of
@@ -604,7 +610,9 @@ def source_point(buf: NodeArrays, s, t, pattern: int, key, x=None, nx=None, weig
     node, _, drawn = dr.while_loop(state=state, cond=lambda node, left, drawn: kind(node) != TRIANGLE,
                                    body=lambda node, left, drawn: descend(node, left, drawn, weigh_faces, below_volume))
     w = to_unit(hash_u32(key ^ hash_u32(t + 0x2545F491)))
-    y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), dr.select(on_triangle, u, w), v)
+    along = dr.select(on_triangle, u, w)
+    y = triangle_point(*(dr.gather(mi.Vector3f, c, node) for c in buf.poly[:3]), along, v)
+    place = pack_place(dr.sqrt(along), v)
     n = dr.gather(mi.Vector3f, buf.normal, node)
     # points of tessellated spheres and cylinders on the true surface (nodes.project)
     radius = dr.gather(mi.Float, buf.curve[2], node)
@@ -617,7 +625,16 @@ def source_point(buf: NodeArrays, s, t, pattern: int, key, x=None, nx=None, weig
     direction = radial / dr.maximum(rlen, _TINY)
     y = dr.select(curved, y + direction * (radius - rlen), y)
     n = dr.select(curved, dr.select(dr.dot(direction, n) < 0, -direction, direction), n)
-    return y, n, node, drawn
+    return y, n, node, drawn, place
+
+
+def pack_place(su, v):
+    """mi.UInt32: a point on a triangle (corners p0, p1, p2) at (1 - su) p0 + su (1 - v) p1 +
+    su v p2 (``visibility.triangle_point``, su = sqrt(u)), su and v in [0, 1] as 16 bits each
+    (``nodes.leaf_holding`` finds the leaf below the triangle that holds it)."""
+    def bits(x):
+        return mi.UInt32(dr.clip(x, 0.0, 1.0) * PLACE_SCALE + 0.5)
+    return (bits(su) << 16) | bits(v)
 
 
 def _reach(buf: NodeArrays, c, x, nx):
@@ -704,7 +721,7 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
         lane = dr.arange(mi.UInt32, (b - a) * count)
         node = dr.gather(mi.UInt32, to_uint(ids[a:b]), lane // count)
         key = hash_u32(node ^ hash_u32(opaque_u32(seed) + 0x5BD1E995))
-        y, n, _, _ = source_point(buf, node, lane % count, count, key)
+        y, n, _, _, _ = source_point(buf, node, lane % count, count, key)
         inside = _buried(mi_scene, y, n, offset, table, enclosed=False)
         out[a:b] = np.asarray(dr.block_sum(dr.select(inside, 1.0, 0.0), count).numpy(), np.float64) / count
     return out
@@ -740,7 +757,7 @@ def leaves_blocked(mi_scene, buf: NodeBuffers, centroid: np.ndarray, normal: np.
             s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
             r = dr.gather(mi.UInt32, to_uint(recv[a:b]), pair)
             key = hash_u32(hash_u32(r ^ hash_u32(opaque_u32(seed) + 0x2545F491)) + s * 0x632BE5AB)
-            y, ny, _, _ = source_point(buf, s, (key + to_uint(t_of * step_of)) % SOURCE_POINTS, SOURCE_POINTS, key)
+            y, ny, _, _, _ = source_point(buf, s, (key + to_uint(t_of * step_of)) % SOURCE_POINTS, SOURCE_POINTS, key)
             if from_points:
                 x = dr.gather(mi.Vector3f, buf.recv_pts, r * RECEIVER_POINTS + (key + to_uint(t_of)) % RECEIVER_POINTS)
             else:
@@ -778,7 +795,7 @@ def escaping_share(mi_scene, buf: NodeBuffers, src: np.ndarray, seed: int, offse
             pair, t = lane // ESCAPE_RAYS, lane % ESCAPE_RAYS
             s = dr.gather(mi.UInt32, to_uint(src[a:b]), pair)
             key = hash_u32(s * 0x9E3779B9 + opaque_u32(seed))
-            y, ny, _, _ = source_point(buf, s, t, ESCAPE_RAYS, key)
+            y, ny, _, _, _ = source_point(buf, s, t, ESCAPE_RAYS, key)
             # (the directions' set in another order than the points': each point its own)
             u, v = shifted_hammersley((t * 37 + 11) % ESCAPE_RAYS, ESCAPE_RAYS, hash_u32(key ^ 0x5BD1E995))
             d = mi.Frame3f(ny).to_world(mi.warp.square_to_cosine_hemisphere(mi.Point2f(u, v)))

@@ -683,7 +683,7 @@ def test_volume_samples_split_their_waves_transfer_by_triangle():
         pt = evaluate(scene.mi_scene, buf, recv, src, rays_per_point=rays, seed=7, offset=state.offset)
         with_samples = evaluate(scene.mi_scene, buf, recv, src, rays_per_point=rays, seed=7, offset=state.offset,
                                 samples=True)
-        link, point, tri, value = with_samples.samples
+        link, point, tri, value, _ = with_samples.samples
         transfer = (nodes.recv_w[recv] * pt.gv).sum(axis=1)
         split = np.bincount(link, weights=nodes.recv_w[recv[link], point] * value / rays, minlength=len(recv))
         assert (transfer > 0).sum() > 100
@@ -1981,3 +1981,53 @@ def test_a_leafs_shadow_checks_start_at_its_points_not_its_centre(tmp_path):
     missed = np.flatnonzero(~from_centre[:len(edge)])     # (a centre's rays may cross the panel too)
     assert len(missed) >= 3 and from_points[missed].all(), (from_centre, from_points)
     assert not from_points[len(edge):].any() and not from_centre[len(edge):].any()
+
+
+def _barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(S, 3) coordinates of points (S, 3) on triangles corners (S, 3, 3) (in their planes)."""
+    e1, e2, d = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], points - corners[:, 0]
+    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    b1, b2 = (d * e1).sum(1), (d * e2).sum(1)
+    den = d11 * d22 - d12 * d12
+    beta, gamma = (d22 * b1 - d12 * b2) / den, (d11 * b2 - d12 * b1) / den
+    return np.stack([1.0 - beta - gamma, beta, gamma], 1)
+
+
+def test_a_source_sample_is_credited_to_the_leaf_that_holds_it():
+    """The final gather credits a source's sample to the leaf below its triangle that holds it
+    (``nodes.leaf_holding``, from where ``transfer.source_point`` put it): drawn on every node of a
+    scene whose triangles were split three levels down (slivers halved, the others quartered),
+    each point lies in the leaf found, and with a node limit in a node made before it."""
+    import mitsuba as mi
+    from mirad.nodes import leaf_holding
+    from mirad.transfer import NodeBuffers, source_point
+
+    T = mi.ScalarTransform4f
+    scene = mirad.load_scene({"type": "scene", "sliver": square(T().scale([10.0, 0.5, 1.0]), sid="sliver"),
+                              "plate": square(T().translate([0, 0, 2]).rotate([1, 0, 0], 180), radiance=1.0,
+                                              sid="plate")})
+    state = core.build(scene, make_settings(tolerance=0.1, quiet=True, core="hierarchical"))
+    nodes = state.nodes
+    limits = []
+    for _ in range(3):
+        limits.append(len(nodes))
+        core.split_leaves(state, nodes.leaves[nodes.kind[nodes.leaves] == core.TRIANGLE])
+    split = np.flatnonzero((nodes.kind == core.TRIANGLE) & (nodes.children[:, 0] >= 0))
+    assert (nodes.children[split, 3] >= 0).any() and (nodes.children[split, 2] < 0).any()   # both kinds
+    count = 64
+    src = np.repeat(np.arange(len(nodes)), count)
+    y, _, tri, _, place = source_point(NodeBuffers.upload(nodes), mi.UInt32(src), mi.UInt32(np.tile(np.arange(count),
+                                       len(nodes))), count, mi.UInt32(0x51ED))
+    y = np.stack([np.asarray(c.numpy(), np.float64) for c in (y.x, y.y, y.z)], 1)
+    tri, place = np.asarray(tri.numpy(), np.int64), np.asarray(place.numpy(), np.uint32)
+    for limit in (None, limits[-1]):
+        bound = len(nodes) if limit is None else limit
+        # (the triangles made before the limit, as the gather's sources are)
+        mine = tri < bound
+        leaf = leaf_holding(nodes, tri[mine], place[mine], limit)
+        assert np.all(leaf < bound)
+        # (a leaf, or a node whose children were made at or after the limit)
+        assert np.all((nodes.children[leaf, 0] < 0) | (nodes.children[leaf, 0] >= bound))
+        bary = _barycentric(nodes.poly[leaf, :3].astype(np.float64), y[mine])
+        assert bary.min() >= -1e-3, bary.min()
+        assert (leaf != tri[mine]).any()      # (points drawn on split triangles went down)
