@@ -843,6 +843,7 @@ class Gathered:
     #: (L',) W: ``noise_power`` as the output counts it, per input triangle (``triangle_noise``),
     #: shared out to its leaves; None: as ``noise_power``
     triangle_noise_power: np.ndarray | None = None
+    residual: float = 0.0        # the relative residual its last solve left (``LeafSystem.residual``)
 
 
 #: Most times the final gather splits a leaf that a shadow crosses (each a level finer).
@@ -2578,9 +2579,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     start = solved.b_node.copy()
     start[leaves] = solved.b_leaf
     t1 = time.perf_counter()
-    b, iterations, _ = solve_system(final, inherited(state, start, final_leaves), method=state.settings.solver,
-                                    tol=state.settings.solver_tolerance,
-                                    max_iterations=state.settings.max_iterations)
+    b, iterations, residual = solve_system(final, inherited(state, start, final_leaves), method=state.settings.solver,
+                                           tol=state.settings.solver_tolerance,
+                                           max_iterations=state.settings.max_iterations)
     iterations_max = iterations
     solve_time = time.perf_counter() - t1
     # every transfer of the gathered system, on the node it was evaluated on (a smooth link on
@@ -2629,8 +2630,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         base = final.emission
         for _ in range(LINEAR_SOURCE_ITERATIONS):
             final.emission = base + final.scatter(extra(np.maximum(b, 0.0)))
-            b, more, _ = solve_system(final, b, method=state.settings.solver, tol=state.settings.solver_tolerance,
-                                      max_iterations=state.settings.max_iterations)
+            b, more, residual = solve_system(final, b, method=state.settings.solver,
+                                             tol=state.settings.solver_tolerance,
+                                             max_iterations=state.settings.max_iterations)
             iterations += more
             iterations_max = max(iterations_max, more)
         final.emission = base
@@ -2643,7 +2645,8 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     state.timing["gather"] += time.perf_counter() - t - seconds_in_waves - solve_time - \
         (state.timing["direct"] - direct_before)
     return Gathered(h_leaf, noise, int(iterations), evaluated, final_leaves, final,
-                    inner[links.recv] | on_leaf, source_power, int(iterations_max), per_triangle)
+                    inner[links.recv] | on_leaf, source_power, int(iterations_max), per_triangle,
+                    residual=float(residual))
 
 
 def source_state(state: State, solved: Solved) -> SourceState:
@@ -3060,7 +3063,8 @@ def _solution(state, solved, gathered, est, passes, iterations, iterations_max, 
         "solver_iterations": int(iterations + gathered.iterations),
         "solver_iterations_max": int(max(iterations_max, gathered.iterations_max)),
         "gather_pairs": int(gathered.pairs),
-        "solver_residual": float(solved.residual),
+        # (the gathered system's, which the output solves; a pass's stops at a share of the tolerance)
+        "solver_residual": float(gathered.residual),
         "refine_passes": int(passes),
         "clusters": int(np.count_nonzero(kinds != TRIANGLE)),
         "face_clusters": int(np.count_nonzero(kinds == 1)),

@@ -39,6 +39,16 @@ def test_furnace_near_white_converges_with_default_solver():
     assert sol.stats["solver_iterations"] < 500
 
 
+def test_the_reported_residual_is_the_output_systems(cornell):
+    """``stats["solver_residual"]`` is the residual of the system the output solves, which stops at
+    ``solver_tolerance``, not a refinement pass's, which stops at 1 % of the error tolerance (4e-3 at
+    tolerance 0.4): it follows ``solver_tolerance``."""
+    residual = {t: mirad.solve(cornell, tolerance=0.4, solver_tolerance=t).stats["solver_residual"]
+                for t in (1e-2, 1e-6, 1e-9)}
+    assert residual[1e-6] < 1e-4
+    assert residual[1e-9] < residual[1e-6] < residual[1e-2], residual
+
+
 def test_row_sums_and_reciprocity_of_link_transfers():
     scene = mirad.load_scene(closed_box(0.5, 1 / np.pi))
     # 64 points per link: patch-level links between whole faces are the coarsest case
