@@ -344,7 +344,7 @@ def _aim(mi_scene, buf: NodeArrays, recv_dr, src_dr, lane, point_lane, r_count: 
     # (a volume cluster's triangle is drawn by what it may send to the point, ``source_point``;
     # a periodic source's images are drawn by area)
     y, ny, tri, drawn, place = source_point(buf, s, t, pattern, key, *((x, nx) if periodic is None else ()),
-                                     weigh_faces=weigh_faces)
+                                            weigh_faces=weigh_faces)
     # a volume cluster: the exact form factor of the triangle the point is on, over the
     # probability of drawing it: unbiased, and bounded by the cluster's area over the
     # triangle's times what the draw favoured it by, where a point-to-point kernel is not (a
