@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,15 @@ RECIPROCITY_REL = 0.02
 #: Parallel unit squares at distance 1 and perpendicular unit squares sharing an edge (Howell).
 F_PARALLEL = 0.199825
 F_PERPENDICULAR = 0.200044
+
+
+def load_script(path: Path, name: str):
+    """The Python file at ``path`` (a validation script or a scene generator, not a package
+    module) imported as module ``name``."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -7,7 +7,6 @@ leaves found are the generator's (2 triangles each).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import warnings
 
@@ -15,15 +14,12 @@ import numpy as np
 import pytest
 
 import mirad
-from conftest import ROOT
+from conftest import ROOT, load_script
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_peers", ROOT / "validation" / "bench_peers.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "validation" / "bench_peers.py", "bench_peers")
 
 
 @pytest.fixture(scope="module")

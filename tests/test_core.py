@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import mirad
-from conftest import CLOSED_FORM_REL, F_PARALLEL, F_PERPENDICULAR, SCENES, area_mean, closed_box, square
+from conftest import CLOSED_FORM_REL, F_PARALLEL, F_PERPENDICULAR, SCENES, area_mean, closed_box, load_script, square
 from mirad import core
 from mirad.settings import make_settings
 
@@ -1324,13 +1324,10 @@ def test_the_gathers_splits_keep_the_direct_lights_error(monkeypatch):
     the last pass that could resample it. A 1,000-leaf canopy at tolerance 0.02 then ended at
     2.17 % (the passes' 1.79 %, the direct light's share 0.66 % -> 2.09 %), above the tolerance
     whatever tolerance was asked; here the share was 2.7x the passes'."""
-    import importlib.util
     import tempfile
     from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location("canopy_make", SCENES / "canopy-scale" / "make.py")
-    make = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make)
+    make = load_script(SCENES / "canopy-scale" / "make.py", "canopy_make")
     seen = {}
     original = core.output_estimate
 
@@ -1373,11 +1370,8 @@ def test_the_gathers_allowances_count_the_sun_and_sky_light(tmp_path):
     leaf's gather to that fraction (the 1,000-leaf translucent canopy traced 16.0 M rays at
     tolerance 0.1, now 11.9 M, at the same error). A node's value is the area mean of the
     leaves below it."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("canopy_make", SCENES / "canopy-scale" / "make.py")
-    make = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make)
+    make = load_script(SCENES / "canopy-scale" / "make.py", "canopy_make")
     path = make.make_canopy(tmp_path, plants=2, leaves_per_plant=20, seed=1)
     state = core.build(mirad.load_scene(str(path)), make_settings(tolerance=0.1, **HIER))
     nodes = state.nodes
@@ -1458,13 +1452,10 @@ def test_over_a_canopys_leaves_the_estimate_covers_their_error(tmp_path):
     light's points were balanced against the gather's error, ``core.balance_direct``) holds the
     reference's own noise (0.5 %) and the undersides' +2 % bias, which the estimate now counts
     (``core.own_deviation``)."""
-    import importlib.util
 
     from mirad.reference import triangle_reference
 
-    spec = importlib.util.spec_from_file_location("canopy_make", SCENES / "canopy-scale" / "make.py")
-    make = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make)
+    make = load_script(SCENES / "canopy-scale" / "make.py", "canopy_make")
     scene = mirad.load_scene(str(make.make_canopy(tmp_path, plants=2, leaves_per_plant=20, seed=1)))
     leafy = np.flatnonzero(np.asarray(scene.shape_ids)[scene.tri_shape] != "ground")
     ref = np.concatenate([triangle_reference(scene, samples_per_triangle=16384, seed=3, triangles=leafy,
@@ -1493,13 +1484,10 @@ def test_a_receiver_whose_points_miss_a_source_in_front_of_part_of_it_takes_the_
     (here against a sampled double integral), where the bounding spheres' form factor, in its
     place before, was 1 for every leaf inside the ground's sphere (its links held 50 times the
     tolerance's budget on a 1,000-leaf canopy, each the ground's area times the leaf's radiosity)."""
-    import importlib.util
 
     from mirad.refine import unseen_in_front
 
-    spec = importlib.util.spec_from_file_location("canopy_make", SCENES / "canopy-scale" / "make.py")
-    make = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make)
+    make = load_script(SCENES / "canopy-scale" / "make.py", "canopy_make")
     scene = mirad.load_scene(make.make_canopy(tmp_path, plants=1, leaves_per_plant=60, seed=2))
     state = core.build(scene, make_settings(tolerance=0.1, **HIER))
     nodes = state.nodes

@@ -13,7 +13,7 @@ import pytest
 import mirad
 import mitsuba as mi
 import drjit as dr
-from conftest import run_cli
+from conftest import SCENES, load_script, run_cli
 from mirad import far_field, periodic
 from mirad.arrays import to_float
 from mirad.errors import SceneError, SettingsError
@@ -247,14 +247,7 @@ def test_two_infinite_parallel_planes_exchange_all_their_light(rho_ceiling, expe
 # ------------------------------------------------------------------------------------------
 
 def _make():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scenes" / "periodic-canopy" / "make.py"
-    spec = importlib.util.spec_from_file_location("periodic_canopy_make", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCENES / "periodic-canopy" / "make.py", "periodic_canopy_make")
 
 
 #: The small pattern of these tests: a 2 x 2 m plot, 2 crowns of 60 leaves (240 leaf triangles).

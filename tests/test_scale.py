@@ -2,22 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 
 import numpy as np
 import pytest
 
 import mirad
-from conftest import SCENES
+from conftest import SCENES, load_script
 from mirad import export
 
 
 @pytest.fixture(scope="module")
 def make():
-    spec = importlib.util.spec_from_file_location("canopy_make", SCENES / "canopy-scale" / "make.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCENES / "canopy-scale" / "make.py", "canopy_make")
 
 
 @pytest.mark.parametrize("triangles", [1000, 10000, 100000])
