@@ -474,7 +474,7 @@ _frozen_aim = _freeze(lambda *args, **kwargs: tuple(_aim(*args, **kwargs)))
 _frozen_sums = _freeze(lambda r_count, point_lane, lanes, samples: _sampled_sums(r_count, point_lane, Lanes(*lanes),
                                                                                 samples))
 # (and the reverse form factors of a refinement pass's near links)
-_frozen_reverse = _freeze(lambda *args: _reverse_values(*args))
+_frozen_reverse = _freeze(_reverse_values)
 
 
 def wave_recordings() -> int:
@@ -666,17 +666,16 @@ def _reach(buf: NodeArrays, c, x, nx):
     return dr.gather(mi.Float, buf.area, c) * cosine / dr.maximum(dr.maximum(dist2, radius * radius), _TINY)
 
 
-def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float, table=None) -> np.ndarray:
+def buried_fraction(mi_scene, points: np.ndarray, normals: np.ndarray, offset: float, table) -> np.ndarray:
     """(N,) fraction of each node's points (N, S, 3), with normals (N, S, 3), that lie
     inside closed geometry: a ray from the point along its normal first meets the back of a
-    one-sided surface (the floor under a box standing on it), and so does every ray of a set
-    spread over its hemisphere (``_buried``).
+    one-sided surface (``table``: ``one_sided_table``; the floor under a box standing on it), and
+    so does every ray of a set spread over its hemisphere (``_buried``).
 
     That part of a surface is seen from nowhere; its radiosity is zero, so the light a
     node sends is its power over the area that is not buried (``core.solve``)."""
     n, s = points.shape[:2]
     out = np.zeros(n)
-    table = one_sided_table(mi_scene) if table is None else table
     per_launch = max(1, MAX_LANES // max(s, 1))
     for a in range(0, n, per_launch):
         b = min(n, a + per_launch)
@@ -705,7 +704,7 @@ def blocked(mi_scene, start: np.ndarray, end: np.ndarray, normal: np.ndarray, of
 
 
 def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: int, offset: float,
-                 table=None) -> np.ndarray:
+                 table) -> np.ndarray:
     """(M,) ``buried_fraction`` of triangle nodes ids from ``count`` stratified points on
     each (a Hammersley set shifted per node, on the true surface of curved patches), made
     and counted in the wave: only the shares come back. It measures the nodes that
@@ -714,7 +713,6 @@ def buried_share(mi_scene, buf: NodeBuffers, ids: np.ndarray, count: int, seed: 
     along the normal alone."""
     m = len(ids)
     out = np.zeros(m)
-    table = one_sided_table(mi_scene) if table is None else table
     per_launch = max(1, MAX_LANES // max(count, 1))
     for a in range(0, m, per_launch):
         b = min(m, a + per_launch)
