@@ -124,3 +124,17 @@ def test_info_names_the_leaf_shapes_and_a_pattern_that_picks_them(bench, tmp_pat
     assert f"leaf shapes: {len(leafy)} (" in line
     sol = mirad.solve(scene, tolerance=0.3, error_shapes=pattern)
     assert sol.stats["error_shapes"] == leafy
+
+
+def test_probe_blocker_names_the_crash_the_exception_or_nothing(bench):
+    # a peer whose driver crashes (Mesa 22.3's lavapipe under Helios's runBand: SIGSEGV) must
+    # not take the benchmark's process with it: the probe runs in a child and says how it ended
+    crash = "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"
+    said = bench.probe_blocker(crash, "a probe", 60)
+    assert said.startswith("a probe crashed (SIGSEGV)")
+    raising = "raise RuntimeError('no backend found.\\n  - NVIDIA: none\\n  - Vulkan: none')"
+    said = bench.probe_blocker(raising, "a probe", 60)
+    assert said == "RuntimeError: no backend found. - NVIDIA: none - Vulkan: none"
+    assert bench.probe_blocker("import sys; sys.exit(3)", "a probe", 60) == "a probe failed (exit status 3)"
+    assert bench.probe_blocker("print('fine')", "a probe", 60) is None
+    assert bench.probe_blocker("import time; time.sleep(5)", "a probe", 0.5) == "a probe did not finish in 0.5 s"

@@ -24,8 +24,8 @@ Each side is warmed up (one untimed run), then timed at a sweep of settings on t
    (``-ab 0``) plus the ambient (indirect and sky) light at ``ambient`` points, each the full
    irradiance less its direct part at the same point (``-dj 0``: the same shadow ray both times).
 4. **Helios** through ``pyhelios3d`` (its radiation model needs an NVIDIA GPU with OptiX, or a
-   Vulkan driver: a GPU's, or a software one such as Mesa's lavapipe): when it cannot start, the
-   script says why and skips it.
+   Vulkan driver: a GPU's, or a software one such as Mesa's lavapipe): a one-patch run in a child
+   process first (``helios_blocker``); when that fails or crashes, the script says why and skips it.
 
 A peer that is not installed is skipped with one line (``pip install -e ".[peers]"``).
 
@@ -47,6 +47,7 @@ import datetime as _dt
 import importlib.util
 import math
 import os
+import re
 import sys
 import time
 import warnings
@@ -394,20 +395,58 @@ class RadiancePeer:
 # Helios (pyhelios3d)
 # ------------------------------------------------------------------------------------------
 
-def helios_blocker() -> str | None:
-    """None when pyhelios3d's radiation model starts here, else the reason it does not (its own words)."""
+#: A radiation run on one patch (one band, a sun, a sky, a few rays), run by ``helios_blocker`` in a
+#: child process: a Vulkan driver that starts the model may still crash in ``runBand`` (Mesa 22.3's
+#: lavapipe ends the process with SIGSEGV there), and a crash in the benchmark's own process would
+#: take the other sides' results with it.
+HELIOS_PROBE = """
+from pyhelios import Context, RadiationModel
+with Context() as ctx:
+    uuid = ctx.addPatch()
+    with RadiationModel(ctx) as rad:
+        rad.disableMessages()
+        source = rad.addCollimatedRadiationSource((0.0, 0.0, 1.0))
+        rad.addRadiationBand("R")
+        rad.disableEmission("R")
+        rad.setSourceFlux(source, "R", 100.0)
+        rad.setDiffuseRadiationFlux("R", 10.0)
+        rad.setDirectRayCount("R", 10)
+        rad.setDiffuseRayCount("R", 10)
+        rad.runBand(["R"])
+        flux = rad.getAbsorbedFlux(["R"], [uuid])
+print("absorbed", flux)
+"""
+
+
+def helios_blocker(timeout: float = 300.0) -> str | None:
+    """None when pyhelios3d's radiation model runs here (``HELIOS_PROBE`` in a child process),
+    else the reason it does not."""
+    if importlib.util.find_spec("pyhelios") is None:
+        return "pyhelios3d is not installed (No module named 'pyhelios'); pip install -e \".[peers]\""
+    return probe_blocker(HELIOS_PROBE, "a one-patch radiation run", timeout)
+
+
+def probe_blocker(code: str, what: str, timeout: float) -> str | None:
+    """Run Python ``code`` in a child process: None when it exits cleanly, else why not, naming
+    ``what`` it was: its last exception ("module.Type: message", on one line), the signal that
+    ended it, or the time it ran past ``timeout`` (s)."""
+    import signal
+    import subprocess
+
     try:
-        from pyhelios import Context, RadiationModel
-    except ImportError as exc:
-        return f"pyhelios3d is not installed ({exc}); pip install -e \".[peers]\""
-    try:
-        with Context() as ctx:
-            ctx.addPatch()
-            with RadiationModel(ctx):
-                pass
-    except Exception as exc:   # the plugin raises its own error types; report any as the reason
-        return " ".join(str(exc).split())[:700]
-    return None
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return f"{what} did not finish in {timeout:g} s"
+    if run.returncode == 0:
+        return None
+    # (the child's last words: its last exception's line to the end)
+    lines = run.stderr.strip().splitlines()
+    raised = [i for i, line in enumerate(lines) if re.match(r"[\w.]+: ", line)]
+    said = " ".join(" ".join(lines[raised[-1]:]).split())[:700] if raised else ""
+    if run.returncode < 0:
+        name = signal.Signals(-run.returncode).name
+        return f"{what} crashed ({name}): its GPU or Vulkan driver cannot run it here{'; ' + said if said else ''}"
+    return said or f"{what} failed (exit status {run.returncode})"
 
 
 def parse_helios(spec: str) -> dict:
@@ -431,8 +470,9 @@ class HeliosPeer:
     per primitive (W/m^2, both faces) times its area is the absorbed power.
 
     Only the geometry and optics run without a GPU; the radiation model needs OptiX or Vulkan
-    (``helios_blocker``). Where neither was present (the 2-core development machine) this class
-    has not been run past that point.
+    (``helios_blocker``). On the 2-core development machine neither was present, and Mesa 22.3's
+    lavapipe (Debian 12's software Vulkan) starts the model but ends the process with SIGSEGV in
+    ``runBand``: this class has not been run past that point there.
     """
 
     name = "Helios (pyhelios3d)"
