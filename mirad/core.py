@@ -2579,12 +2579,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     start = solved.b_node.copy()
     start[leaves] = solved.b_leaf
     t1 = time.perf_counter()
-    # (where the sources' gradients follow, this first solution only sets their light and the
-    # start of the last solve, which alone meets solver_tolerance: a pass's residual will do)
-    first_tol = state.settings.solver_tolerance if not LINEAR_SOURCES else \
-        max(state.settings.solver_tolerance, PASS_SOLVE_SHARE * state.settings.tolerance)
     b, iterations, residual = solve_system(final, inherited(state, start, final_leaves), method=state.settings.solver,
-                                           tol=first_tol, max_iterations=state.settings.max_iterations)
+                                           tol=state.settings.solver_tolerance,
+                                           max_iterations=state.settings.max_iterations)
     iterations_max = iterations
     solve_time = time.perf_counter() - t1
     # every transfer of the gathered system, on the node it was evaluated on (a smooth link on
