@@ -126,6 +126,7 @@ class State:
     periodic: object | None = None            # periodic.PeriodicBox of a periodic canopy, or None
     far: np.ndarray | None = None             # (N, C) W/m^2: its far field's irradiance (far_field.far_field)
     weight: np.ndarray | None = None          # (N,) output_weight of every node, set by source_state
+    face_triangles: sp.csr_matrix | None = None  # (N0, N0) 0/1: the face clusters' summed triangles (``summed_faces``)
 
     def __post_init__(self) -> None:
         self.timing = {"build": 0.0, "link": 0.0, "refine": 0.0, "transfer": 0.0, "direct": 0.0,
@@ -2030,14 +2031,33 @@ def input_triangles(nodes: Nodes, ids: np.ndarray, limit: int) -> tuple[np.ndarr
     return tri[keep], owner[keep], within
 
 
-def few_triangles(nodes: Nodes, src: np.ndarray, limit: int) -> np.ndarray:
-    """(M,) bool: face-cluster sources src of at most ``limit`` input triangles (none for 0)."""
+def summed_faces(state: State) -> sp.csr_matrix:
+    """(N0, N0) 0/1: the input triangles of every face cluster that holds at most
+    EXACT_FACE_TRIANGLES of them (other rows empty), over the nodes when first asked: the gather
+    splits triangles only, so no face cluster is made later."""
+    if state.face_triangles is None:
+        nodes = state.nodes
+        faces = np.flatnonzero(nodes.kind == FACE) if EXACT_FACE_TRIANGLES > 0 else np.zeros(0, np.int64)
+        tri, owner, _ = input_triangles(nodes, faces, EXACT_FACE_TRIANGLES)
+        state.face_triangles = sp.csr_matrix((np.ones(len(tri)), (faces[owner], tri)), shape=(len(nodes),) * 2)
+    return state.face_triangles
+
+
+def summed_sources(state: State, src: np.ndarray) -> np.ndarray:
+    """(M,) bool: sources src whose light a near pair takes as the sum over their triangles
+    (``summed_faces``)."""
+    table = summed_faces(state)
     out = np.zeros(len(src), bool)
-    face = np.flatnonzero(nodes.kind[src] == FACE)
-    if limit > 0 and len(face):
-        unique, back = np.unique(src[face], return_inverse=True)
-        out[face] = input_triangles(nodes, unique, limit)[2][back]
+    known = src < table.shape[0]
+    out[known] = np.diff(table.indptr)[src[known]] > 0
     return out
+
+
+def _summed_rows(state: State, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles of sources src (M,) that ``summed_faces`` lists: (triangle (T,), its
+    source's position in src (T,))."""
+    rows = summed_faces(state)[src]
+    return rows.indices.astype(np.int64), np.repeat(np.arange(len(src)), np.diff(rows.indptr))
 
 
 def exact_near_faces(state: State, recv: np.ndarray, src: np.ndarray, values: list) -> None:
@@ -2047,17 +2067,17 @@ def exact_near_faces(state: State, recv: np.ndarray, src: np.ndarray, values: li
     to the sum of the triangles' exact form factors at each point, their visibility kept (the
     rays aim at the triangles, ``transfer.source_point``). A point whose rectangle is behind it
     traced no ray and stays at 0."""
-    nodes = state.nodes
-    near = np.flatnonzero(overhangs(nodes, recv, src))
-    if not len(near) or not EXACT_FACE_TRIANGLES or state.periodic is not None:
+    if not EXACT_FACE_TRIANGLES or state.periodic is not None:
         return
-    tri, owner, within = input_triangles(nodes, src[near], EXACT_FACE_TRIANGLES)
-    if not len(tri):
+    near = np.flatnonzero(summed_sources(state, src))
+    near = near[overhangs(state.nodes, recv[near], src[near])]
+    if not len(near):
         return
+    tri, owner = _summed_rows(state, src[near])
     each = reverse_form_factor(_buffers(state), tri, recv[near][owner], state.offset)     # (T, K)
     exact = np.stack([np.bincount(owner, weights=each[:, k], minlength=len(near))
-                      for k in range(RECEIVER_POINTS)], axis=1)[within]
-    rows = near[within]
+                      for k in range(RECEIVER_POINTS)], axis=1)
+    rows = near
     g = values[0][rows].astype(np.float64)
     ratio = np.divide(exact, g, out=np.zeros_like(exact), where=g > 0)
     for a in values:
@@ -2076,16 +2096,16 @@ def exact_face_entries(state: State, recv: np.ndarray, src: np.ndarray, ff: np.n
     none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if not EXACT_FACE_TRIANGLES or state.periodic is not None:
         return np.zeros(0, np.int64), none, none + (np.zeros(0, np.int64),)
-    pairs = np.flatnonzero(by_mean & (ff > 0) & (nodes.kind[src] == FACE))
+    pairs = np.flatnonzero(by_mean & (ff > 0) & summed_sources(state, src))
     pairs = pairs[overhangs(nodes, recv[pairs], src[pairs])]
-    tri, owner, within = input_triangles(nodes, src[pairs], EXACT_FACE_TRIANGLES)
+    tri, owner = _summed_rows(state, src[pairs])
     receiver = recv[pairs][owner]
     each = row_sum(take_rows(nodes.recv_w, receiver).astype(np.float64)
                    * reverse_form_factor(_buffers(state), tri, receiver, state.offset))
     total = np.bincount(owner, weights=each, minlength=len(pairs))
     share = each * ff[pairs][owner] / np.maximum(total[owner], 1e-300)
     near = np.flatnonzero(distance_to_source(nodes, receiver, tri) <= 2.0 * nodes.radius[tri])
-    return pairs[within & (total > 0)], (receiver, tri, share), \
+    return pairs[total > 0], (receiver, tri, share), \
         (receiver[near], tri[near], share[near], pairs[owner[near]])
 
 
@@ -2100,12 +2120,14 @@ def near_volume(nodes: Nodes, recv: np.ndarray, src: np.ndarray) -> np.ndarray:
     return out
 
 
-def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair: np.ndarray):
+def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair: np.ndarray,
+                     summed: np.ndarray | None = None):
     """Pairs recv <- src (M,), with their other arrays ``per_pair`` (M,) each, their
     overhanging sources (``overhangs``) and near small volume clusters (``near_volume``)
     replaced by their children (which take the pair's other values), down to sources that fit,
     that hold at most EXACT_FACE_TRIANGLES triangles (summed exactly, ``exact_near_faces``) or
     to triangles: geometry, known before any ray, so no pair is evaluated only to be split.
+    ``summed``: (N0,) bool, the sources summed over their triangles (``summed_faces``), or None.
     (Decided after a pair's rays, and only where some of them arrived, the opening left the
     pairs whose rays all missed at 0 while the others got their children's fresh estimates:
     a choice by the rays' own outcome, which biases the pairs it keeps.)
@@ -2114,8 +2136,10 @@ def overhang_descent(nodes: Nodes, recv: np.ndarray, src: np.ndarray, *per_pair:
     done = [tuple(a[:0] for a in now)]
     while len(now[0]):
         recv, src = now[:2]
-        split = ((overhangs(nodes, recv, src) & ~few_triangles(nodes, src, EXACT_FACE_TRIANGLES))
-                 | near_volume(nodes, recv, src)) & (nodes.children[src, 0] >= 0)
+        over = overhangs(nodes, recv, src)
+        if summed is not None:
+            over &= ~summed[src]
+        split = (over | near_volume(nodes, recv, src)) & (nodes.children[src, 0] >= 0)
         done.append(tuple(take_rows(a, ~split) for a in now))
         own, child = nodes.children_of(src[split])
         picked = np.flatnonzero(split)[own]
@@ -2437,7 +2461,9 @@ def final_gather(state: State, solved: Solved) -> Gathered:
     del pairs
     # (a source that overhangs its triangles near the receiver is split below whatever its rays
     # say: it descends first, and only the sources that fit are evaluated)
-    pair_node, pair_src, pair_rays, pair_link = overhang_descent(nodes, pair_node, pair_src, pair_rays, pair_link)
+    summed = np.diff(summed_faces(state).indptr) > 0
+    pair_node, pair_src, pair_rays, pair_link = overhang_descent(nodes, pair_node, pair_src, pair_rays, pair_link,
+                                                                 summed=summed)
     # (partly visible links' pairs start at GATHER_RAYS per point, or at one where their link's own
     # visibility says one is enough)
     pair_rays = first_rays(state, links, pair_node, pair_src, pair_link, pair_rays, b_src, h_node, tol)
@@ -2465,7 +2491,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         """(M,) bool: the pairs whose source gathers from its children instead."""
         pair_node, pair_src, pair_rays, g_ff = pairs[:4]
         dist = centre_distance(nodes, pair_node, pair_src)
-        overhang = overhangs(nodes, pair_node, pair_src, dist) & ~few_triangles(nodes, pair_src, EXACT_FACE_TRIANGLES)
+        overhang = overhangs(nodes, pair_node, pair_src, dist) & ~summed_sources(state, pair_src)
         # a source whose children differ, as seen across it from the leaf (refine.power_errors'
         # kernel change), by more than the pair's share of the tolerance: the pairs on one leaf
         # err each by its own geometry, so as the visibility noise, (e)^2 <= (GATHER_SHARE tol)^2

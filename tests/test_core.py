@@ -1430,19 +1430,21 @@ def test_the_gather_evaluates_no_pair_only_to_split_its_source(monkeypatch):
 
     def spy(state, solved, patch, src, rays, found=None):
         if not first:
-            first.append((state.nodes, patch.copy(), src.copy()))
+            first.append((state, patch.copy(), src.copy()))
         return original(state, solved, patch, src, rays, found)
 
     monkeypatch.setattr(core, "_evaluate_pairs", spy)
     mirad.solve(SCENES / "furnished-room" / "scene.xml", tolerance=0.2, **HIER)
-    nodes, patch, src = first[0]
+    state, patch, src = first[0]
+    nodes = state.nodes
     assert len(patch)
-    summed = core.few_triangles(nodes, src, core.EXACT_FACE_TRIANGLES)
+    summed = core.summed_sources(state, src)
     fits = ~(core.overhangs(nodes, patch, src) & (nodes.children[src, 0] >= 0) & ~summed)
     assert fits.all()
     assert (core.overhangs(nodes, patch, src) & summed).any()      # (the room has such sources)
     # and the descent keeps the pairs whose sources fit as they were
-    kept, kept_src, _ = core.overhang_descent(nodes, patch, src, np.ones(len(patch), np.int64))
+    kept, kept_src, _ = core.overhang_descent(nodes, patch, src, np.ones(len(patch), np.int64),
+                                              summed=np.diff(core.summed_faces(state).indptr) > 0)
     assert len(kept) == len(patch)
 
 
