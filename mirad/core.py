@@ -2010,10 +2010,10 @@ def overhangs(nodes: Nodes, recv: np.ndarray, src: np.ndarray, dist: np.ndarray 
         (nodes.kind[src] == FACE)
 
 
-def input_triangles(nodes: Nodes, ids: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The input triangles (the first triangle nodes down the tree) of face clusters or
+def input_triangles(nodes: Nodes, ids: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """The input triangles (the first triangle nodes down the tree) of those face clusters or
     triangles ids (M,) that hold at most ``limit`` of them: (triangle (T,), its owner's position
-    in ids (T,), which ids hold at most ``limit`` (M,) bool)."""
+    in ids (T,))."""
     node, owner = np.asarray(ids, np.int64), np.arange(len(ids))
     within = np.ones(len(ids), bool)
     found_tri, found_owner = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
@@ -2028,7 +2028,7 @@ def input_triangles(nodes: Nodes, ids: np.ndarray, limit: int) -> tuple[np.ndarr
         node, owner = node[within[owner]], owner[within[owner]]
     tri, owner = np.concatenate(found_tri), np.concatenate(found_owner)
     keep = within[owner]
-    return tri[keep], owner[keep], within
+    return tri[keep], owner[keep]
 
 
 def summed_faces(state: State) -> sp.csr_matrix:
@@ -2041,7 +2041,7 @@ def summed_faces(state: State) -> sp.csr_matrix:
         nodes = state.nodes
         summing = EXACT_FACE_TRIANGLES > 0 and state.periodic is None
         faces = np.flatnonzero(nodes.kind == FACE) if summing else np.zeros(0, np.int64)
-        tri, owner, _ = input_triangles(nodes, faces, EXACT_FACE_TRIANGLES)
+        tri, owner = input_triangles(nodes, faces, EXACT_FACE_TRIANGLES)
         state.face_triangles = sp.csr_matrix((np.ones(len(tri)), (faces[owner], tri)), shape=(len(nodes),) * 2)
     return state.face_triangles
 
@@ -2056,11 +2056,17 @@ def summed_sources(state: State, src: np.ndarray) -> np.ndarray:
     return out
 
 
-def _summed_rows(state: State, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The triangles of sources src (M,) that ``summed_faces`` lists: (triangle (T,), its
-    source's position in src (T,))."""
-    rows = summed_faces(state)[src]
-    return rows.indices.astype(np.int64), np.repeat(np.arange(len(src)), np.diff(rows.indptr))
+def _summed_near(state: State, recv: np.ndarray, src: np.ndarray, among: np.ndarray | None = None):
+    """The pairs recv <- src (M,), of ``among`` (M,) bool or all, whose source ``summed_faces``
+    lists and overhangs its triangles near the receiver (``overhangs``): (their positions (P,),
+    each of their triangles (T,), its pair's place in those (T,), its exact unoccluded form factor
+    at the pair's receiver points (T, K))."""
+    summed = summed_sources(state, src)
+    pairs = np.flatnonzero(summed if among is None else summed & among)
+    pairs = pairs[overhangs(state.nodes, recv[pairs], src[pairs])]
+    rows = summed_faces(state)[src[pairs]]
+    tri, owner = rows.indices.astype(np.int64), np.repeat(np.arange(len(pairs)), np.diff(rows.indptr))
+    return pairs, tri, owner, reverse_form_factor(_buffers(state), tri, recv[pairs][owner], state.offset)
 
 
 def exact_near_faces(state: State, recv: np.ndarray, src: np.ndarray, values: list) -> None:
@@ -2070,12 +2076,9 @@ def exact_near_faces(state: State, recv: np.ndarray, src: np.ndarray, values: li
     to the sum of the triangles' exact form factors at each point, their visibility kept (the
     rays aim at the triangles, ``transfer.source_point``). A point whose rectangle is behind it
     traced no ray and stays at 0."""
-    near = np.flatnonzero(summed_sources(state, src))
-    near = near[overhangs(state.nodes, recv[near], src[near])]
+    near, _, owner, each = _summed_near(state, recv, src)
     if not len(near):
         return
-    tri, owner = _summed_rows(state, src[near])
-    each = reverse_form_factor(_buffers(state), tri, recv[near][owner], state.offset)     # (T, K)
     exact = np.stack([np.bincount(owner, weights=each[:, k], minlength=len(near))
                       for k in range(RECEIVER_POINTS)], axis=1)
     g = values[0][near].astype(np.float64)
@@ -2093,12 +2096,9 @@ def exact_face_entries(state: State, recv: np.ndarray, src: np.ndarray, ff: np.n
     triangles nearer than their own size (receiver, triangle, transfer, pair (T',)), whose
     gradients the near receiver weighs: ``linear_sources``' transfers)."""
     nodes = state.nodes
-    pairs = np.flatnonzero(by_mean & (ff > 0) & summed_sources(state, src))
-    pairs = pairs[overhangs(nodes, recv[pairs], src[pairs])]
-    tri, owner = _summed_rows(state, src[pairs])
+    pairs, tri, owner, at_points = _summed_near(state, recv, src, by_mean & (ff > 0))
     receiver = recv[pairs][owner]
-    each = row_sum(take_rows(nodes.recv_w, receiver).astype(np.float64)
-                   * reverse_form_factor(_buffers(state), tri, receiver, state.offset))
+    each = row_sum(take_rows(nodes.recv_w, receiver).astype(np.float64) * at_points)
     total = np.bincount(owner, weights=each, minlength=len(pairs))
     share = each * ff[pairs][owner] / np.maximum(total[owner], 1e-300)
     near = np.flatnonzero(distance_to_source(nodes, receiver, tri) <= 2.0 * nodes.radius[tri])

@@ -48,6 +48,8 @@ import importlib.util
 import math
 import os
 import re
+import signal
+import subprocess
 import sys
 import time
 import warnings
@@ -430,9 +432,6 @@ def probe_blocker(code: str, what: str, timeout: float) -> str | None:
     """Run Python ``code`` in a child process: None when it exits cleanly, else why not, naming
     ``what`` it was: its last exception ("module.Type: message", on one line), the signal that
     ended it, or the time it ran past ``timeout`` (s)."""
-    import signal
-    import subprocess
-
     try:
         run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
