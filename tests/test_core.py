@@ -323,6 +323,36 @@ def test_linear_fit_reproduces_a_linear_field_and_measures_curvature():
     assert (core.linear_fit(nodes, faces, curved)[3] > 1e-4).all()
 
 
+def test_a_partly_shadowed_link_is_never_fitted():
+    """A plane through a receiver's seven points says nothing of a penumbra between them:
+    ``smooth_links`` fits a link only where every point saw the whole source. Links on face
+    clusters from a far one, their values exactly linear over each receiver: seen whole, each
+    is fitted; the same fields with every point seeing part of the source (as a ray to each of
+    its points measures it), none is. (Fitted, the fine Cornell box's floor beside the boxes
+    read the light's direct share +-10 % in bands a cluster wide at tolerance 0.3, 8.2 % L1
+    over the floor against a brute-force quadrature of that light.)"""
+    from mirad.refine import centre_distance
+
+    scene = mirad.load_scene(SCENES / "cornell-box-fine" / "scene.xml")
+    state = core.build(scene, make_settings(tolerance=0.3, quiet=True, core="hierarchical"))
+    nodes = state.nodes
+    faces = np.flatnonzero(nodes.kind == core.FACE)
+    src = faces[np.argsort(nodes.area[faces])[len(faces) // 2]]
+    far = faces[centre_distance(nodes, faces, np.full(len(faces), src)) > 2.0 * (nodes.radius[faces] + nodes.radius[src])]
+    recv = far[~core.unfittable(nodes, far, np.full(len(far), src))][:50]
+    assert len(recv) == 50
+    pts = nodes.recv_pts[recv].astype(np.float64)
+    rng = np.random.default_rng(2)
+    grad = rng.normal(size=(len(recv), 3)) * 0.1
+    g = (1.0 + np.einsum("mkc,mc->mk", pts - pts.mean(axis=1, keepdims=True), grad)).astype(np.float32)
+    assert (g > 0).all()
+    src_ids, b_src, h = np.full(len(recv), src), np.ones(len(recv)), np.ones(len(recv))
+    for seen_share, fitted in ((1.0, True), (0.6, False)):
+        smooth, _, _, _, rms = core.smooth_links(nodes, recv, src_ids, g, g * np.float32(seen_share), b_src, h, 0.3)
+        assert rms.max() < 1e-5
+        assert (smooth == fitted).all()
+
+
 def test_weighted_fit_keeps_the_quadrature_mean():
     """The fits the final gather reads at the patches' centroids (``smooth_links``) are weighted
     by the receiver points' quadrature weights and centred on their weighted mean: a curved
