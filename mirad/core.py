@@ -2433,7 +2433,19 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         smooth_links_at.append((recv[ok], src[ok], row_sum(take_rows(nodes.recv_w, recv[ok]) * take_rows(gv, ok)),
                                 fit_id))
         # the others go one level down the receiver's tree
-        rest = np.flatnonzero(~smooth & ~source_split)
+        # (one whose points a shadow crossed goes to its leaves at once where they cost no more
+        # waves than its children: these cost one each now, and the share q of this round's
+        # links a shadow crossed sends theirs to the leaves later, so the leaves win once
+        # n_below (1 - q) <= children. Fine box at 0.35: 4 % fewer evaluations, the same error)
+        in_shadow = np.zeros(len(recv), bool)
+        in_shadow[fit] = (g[fit] > 0).all(axis=1) & (gv[fit] < g[fit] * (1 - 1e-6)).any(axis=1)
+        shadowed = float(in_shadow[fit].mean()) if len(fit) else 1.0
+        straight_down = in_shadow & ~smooth & ~source_split & \
+            (n_below[recv] * (1.0 - shadowed) <= (nodes.children[recv] >= 0).sum(axis=1))
+        if straight_down.any():
+            leaf_nodes, at = _leaves_below(below, leaves, recv[straight_down])
+            pairs.append((leaf_nodes, src[straight_down][at], rays[straight_down][at], origin[straight_down][at]))
+        rest = np.flatnonzero(~smooth & ~source_split & ~straight_down)
         # (and the fits whose source is uneven one level down the source's)
         own, r_kid = nodes.children_of(recv[rest])
         s_rest = np.flatnonzero(source_split)
