@@ -2327,6 +2327,11 @@ def final_gather(state: State, solved: Solved) -> Gathered:
             return np.zeros(len(node), bool)
         return behind_source(nodes, node, source) & ~curved[node]
 
+    def to_their_leaves(chosen: np.ndarray) -> None:
+        """The links ``chosen`` (bool over this round's) taken by every leaf below their receiver."""
+        leaf_nodes, at = _leaves_below(below, leaves, recv[chosen])
+        pairs.append((leaf_nodes, src[chosen][at], rays[chosen][at], origin[chosen][at]))
+
     while len(recv):
         # (a receiver wholly behind its planar source's plane gets nothing from it, nor do its
         # leaves; with one ray a point it leaves now, no fit tried nor leaf gathered)
@@ -2337,8 +2342,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         # at once, each taking it at its own points with rays of its own
         direct = descend & (rays > 1)
         if direct.any():
-            leaf_nodes, owner = _leaves_below(below, leaves, recv[direct])
-            pairs.append((leaf_nodes, src[direct][owner], rays[direct][owner], origin[direct][owner]))
+            to_their_leaves(direct)
         descend &= ~direct
         at_leaf = ~inner[recv]
         pairs.append((recv[at_leaf], src[at_leaf], rays[at_leaf], origin[at_leaf]))
@@ -2443,8 +2447,7 @@ def final_gather(state: State, solved: Solved) -> Gathered:
         straight_down = in_shadow & ~smooth & ~source_split & \
             (n_below[recv] * (1.0 - shadowed) <= (nodes.children[recv] >= 0).sum(axis=1))
         if straight_down.any():
-            leaf_nodes, at = _leaves_below(below, leaves, recv[straight_down])
-            pairs.append((leaf_nodes, src[straight_down][at], rays[straight_down][at], origin[straight_down][at]))
+            to_their_leaves(straight_down)
         rest = np.flatnonzero(~smooth & ~source_split & ~straight_down)
         # (and the fits whose source is uneven one level down the source's)
         own, r_kid = nodes.children_of(recv[rest])
